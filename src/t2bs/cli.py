@@ -1,0 +1,42 @@
+"""The `t2bs` command: one subcommand per pipeline stage, all reading/writing a project folder.
+
+User mistakes (UserError) print one line and exit with code 2; anything else is a bug and keeps
+its traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from t2bs.errors import UserError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Text or any character mesh -> animatable blendshape rig (T2Bs).")
+
+# `t2bs bench ...`: benchmarks that reproduce the paper's evaluation (JSON + Markdown).
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks against ground truth (print JSON).")
+app.add_typer(bench_app, name="bench")
+
+# Stage commands. Each module defines a plain function with typer-annotated parameters.
+from t2bs.commands_render import render_command  # noqa: E402
+
+app.command("render")(render_command)
+# -- more stage commands are registered below, one line each --
+# -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
+
+
+def main() -> None:
+    try:
+        app()
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("interrupted; finished jobs are kept, re-run to resume", file=sys.stderr)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()
