@@ -24,7 +24,18 @@ from t2bs.commands_render import render_command  # noqa: E402
 
 app.command("render")(render_command)
 # -- more stage commands are registered below, one line each --
+from t2bs.retarget import commands as _retarget  # noqa: E402
+
+app.command("landmarks")(_retarget.landmarks_command)
+app.command("retarget")(_retarget.retarget_command)
+from t2bs.viewer.commands import view_command  # noqa: E402
+
+app.command("view")(view_command)
+from t2bs.video.commands import videos_command  # noqa: E402
+
+app.command("videos")(videos_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
+bench_app.command("retarget")(_retarget.bench_retarget)
 
 
 def main() -> None:

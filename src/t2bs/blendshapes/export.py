@@ -1,0 +1,133 @@
+"""Export a blendshape model as glTF morph targets (and optionally USD blend shapes).
+
+glTF (``model.glb``): the neutral textured character (``t2bs.geometry.io.save_mesh``), one morph
+target per PCA component then one per named shape, names in ``mesh.extras.targetNames`` (what
+three.js and Blender read), default weights 0 (= the neutral pose, see model.py), and an
+animation that replays one capture. The PCA targets are stored *scaled*: target_k = basis_k *
+range_k with range_k = the largest |weight| of component k over the captures, so every captured
+frame lies within weights -1..1 of the sliders (an orthonormal basis vector has unit norm over all
+3N coordinates, which would put useful weights in the tens or hundreds). Named shapes are stored
+at full strength (weight 1 = the peak of the expression).
+
+USD (``model.usda``, needs ``usd-core``): a UsdSkel skeleton-less blend shape rig — a Mesh bound
+to a SkelRoot/Skeleton with one UsdSkel.BlendShape per target and a SkelAnimation of the weights.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from t2bs.blendshapes.model import BlendshapeModel
+from t2bs.geometry.mesh import Mesh
+
+
+def target_ranges(model: BlendshapeModel) -> np.ndarray:
+    """[K] scale of each exported PCA target: max |weight| over the captures (fallback: s / sqrt(frames))."""
+    if model.capture_weights:
+        w = np.concatenate([np.abs(np.asarray(v)) for v in model.capture_weights.values()])
+        rng = w.max(0)
+    else:
+        frames = max(int(model.meta.get("frames", 1)), 1)
+        rng = np.asarray(model.singular_values) / np.sqrt(frames)
+    return np.maximum(rng, 1e-9).astype(np.float64)
+
+
+def rig_targets(model: BlendshapeModel) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(names [M], offsets [M, N, 3], per-target scale [K] of the PCA part) as exported."""
+    rng = target_ranges(model)
+    pcs = model.basis.astype(np.float64) * rng[:, None, None]
+    sem = model.semantic_offsets().astype(np.float64)
+    names = list(model.names) + list(model.semantic_names)
+    return names, np.concatenate([pcs, sem]).astype(np.float32), rng
+
+
+def export_weights(model: BlendshapeModel, weights: np.ndarray) -> np.ndarray:
+    """Basis weights [T, K] -> exported target weights [T, M] (named shapes at 0)."""
+    rng = target_ranges(model)
+    w = np.asarray(weights, np.float64) / rng
+    return np.concatenate([w, np.zeros((len(w), len(model.semantic_names)))], 1).astype(np.float32)
+
+
+def rig_mesh(model: BlendshapeModel, character: Mesh) -> Mesh:
+    """The character at the model's neutral with the model's targets replacing its own."""
+    if character.vertices.shape != model.neutral.shape:
+        raise ValueError(f"character has {character.num_vertices} vertices, model {model.num_vertices}")
+    names, offsets, _ = rig_targets(model)
+    return replace(character, vertices=model.neutral.astype(np.float32), morph_targets=dict(zip(names, offsets)))
+
+
+def export_glb(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
+               fps: float = 8.0) -> Path:
+    """Write ``model`` as a .glb; ``capture`` (a video id of the model) becomes its animation."""
+    from t2bs.geometry.io import save_mesh
+
+    mesh = rig_mesh(model, character)
+    animation = None
+    if capture is not None and capture in model.capture_weights:
+        w = export_weights(model, model.capture_weights[capture])
+        animation = {"times": np.arange(len(w), dtype=np.float32) / fps, "weights": w, "name": capture}
+    return save_mesh(mesh, path, animation=animation)
+
+
+def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
+               fps: float = 8.0) -> Path:
+    """Write ``model`` as USD (UsdSkel blend shapes); ImportError if usd-core is not installed."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
+
+    from t2bs.project import atomic_path
+
+    path = Path(path)
+    names, offsets, _ = rig_targets(model)
+    tokens = [_usd_token(n) for n in names]
+    with atomic_path(path) as tmp:
+        tmp_usda = tmp.with_suffix(path.suffix)
+        stage = Usd.Stage.CreateNew(str(tmp_usda))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        stage.SetTimeCodesPerSecond(fps)
+        root = UsdSkel.Root.Define(stage, "/Character")
+        stage.SetDefaultPrim(root.GetPrim())
+        mesh = UsdGeom.Mesh.Define(stage, "/Character/Mesh")
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(model.neutral.astype(np.float32)))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(character.faces), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(character.faces.reshape(-1).astype(np.int32)))
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        rgb = character.vertex_rgb().astype(np.float32)
+        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
+                                                UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(rgb))
+        skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
+        skel.CreateJointsAttr([])
+        binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+        binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+        binding.CreateBlendShapesAttr(tokens)
+        targets = []
+        for token, off in zip(tokens, offsets):
+            shape = UsdSkel.BlendShape.Define(stage, f"/Character/Mesh/{token}")
+            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(off.astype(np.float32)))
+            shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(np.arange(len(off), dtype=np.int32)))
+            targets.append(shape.GetPath())
+        binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+        anim = UsdSkel.Animation.Define(stage, "/Character/Skel/Anim")
+        anim.CreateBlendShapesAttr(tokens)
+        weights_attr = anim.CreateBlendShapeWeightsAttr()
+        weights_attr.Set(Vt.FloatArray.FromNumpy(np.zeros(len(tokens), np.float32)))
+        if capture is not None and capture in model.capture_weights:
+            w = export_weights(model, model.capture_weights[capture])
+            for t, row in enumerate(w):
+                weights_attr.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(t))
+            stage.SetStartTimeCode(0)
+            stage.SetEndTimeCode(len(w) - 1)
+        UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+        stage.GetRootLayer().Save()
+        os.replace(tmp_usda, tmp)
+    return path
+
+
+def _usd_token(name: str) -> str:
+    import re
+
+    token = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return token if token and not token[0].isdigit() else f"_{token}"

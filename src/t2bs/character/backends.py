@@ -1,0 +1,168 @@
+"""Text -> character backends: procedural (offline default), diffusers Shap-E, a user command, a file.
+
+Every backend returns a ``GenerationResult`` whose mesh is validated and in the canonical frame
+(centred, facing +Z, bounding-box diagonal 1.2), plus an info dict naming the backend.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from t2bs.character.procedural import GenerationResult, generate_procedural
+from t2bs.errors import MissingCheckpointError, UserError
+from t2bs.geometry.mesh import Mesh, detect_facing, normalize
+
+BACKENDS = ("procedural", "diffusers", "command", "file")
+MESH_SUFFIXES = (".glb", ".gltf", ".vrm", ".obj", ".ply")
+SHAP_E_REPO = "openai/shap-e"
+
+
+def default_checkpoint_dir() -> Path:
+    """Where the Shap-E folder is looked for when --checkpoint is not given."""
+    root = os.environ.get("T2BS_CHECKPOINTS", str(Path.home() / ".cache" / "t2bs" / "checkpoints"))
+    return Path(root) / "shap-e"
+
+
+def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint: Path | None = None,
+             command: str | None = None, mesh_path: Path | None = None, steps: int = 64,
+             device: str | None = None, facing: str = "auto") -> GenerationResult:
+    """Run one backend; UserError for unknown backends or missing arguments."""
+    if backend not in BACKENDS:
+        raise UserError(f"unknown --backend {backend!r}; use one of {', '.join(BACKENDS)}")
+    if backend == "procedural":
+        if not prompt.strip():
+            raise UserError("the prompt is empty; describe the character, e.g. \"a cartoon fox with big ears\"")
+        return generate_procedural(prompt, seed)
+    if backend == "diffusers":
+        return generate_shap_e(prompt, checkpoint or default_checkpoint_dir(), seed, steps=steps, device=device)
+    if backend == "command":
+        if not command:
+            raise UserError("--backend command needs --command, e.g. --command \"python run_trellis.py --prompt {prompt} --out {out}\"")
+        return generate_with_command(prompt, command, seed, facing=facing)
+    if mesh_path is None:
+        raise UserError("--backend file needs --mesh PATH")
+    return generate_from_file(mesh_path, prompt, facing=facing)
+
+
+# ---------------------------------------------------------------- diffusers (Shap-E)
+
+
+def load_shap_e(checkpoint: Path, device: str | None = None):
+    """ShapEPipeline from a local folder (model_index.json + prior, text_encoder, tokenizer, ...)."""
+    checkpoint = Path(checkpoint)
+    if not (checkpoint / "model_index.json").is_file():
+        raise MissingCheckpointError(
+            f"Shap-E text-to-3D weights ({SHAP_E_REPO})", str(checkpoint),
+            f"download them where there is internet (`huggingface-cli download {SHAP_E_REPO} --local-dir shap-e`), "
+            f"copy the folder to {checkpoint} or pass --checkpoint FOLDER")
+    try:
+        import torch
+        from diffusers import ShapEPipeline
+    except ImportError as exc:
+        raise UserError(f"the diffusers backend needs `pip install -e .[diffusers]` ({exc})") from None
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    dtype = torch.float16 if device.startswith("cuda") else torch.float32
+    try:
+        pipe = ShapEPipeline.from_pretrained(str(checkpoint), torch_dtype=dtype, local_files_only=True)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{checkpoint}: not a loadable Shap-E pipeline folder: {str(exc).splitlines()[0]}") from None
+    pipe.set_progress_bar_config(disable=True)
+    return pipe.to(device)
+
+
+def generate_shap_e(prompt: str, checkpoint: Path, seed: int = 0, steps: int = 64, guidance_scale: float = 15.0,
+                    device: str | None = None, pipe=None) -> GenerationResult:
+    """Text -> mesh with Shap-E (output_type="mesh"); colours from its per-vertex RGB channels."""
+    import torch
+
+    start = time.perf_counter()
+    pipe = pipe or load_shap_e(checkpoint, device)
+    dev = pipe.device
+    generator = torch.Generator(device="cpu").manual_seed(int(seed))
+    with torch.no_grad():
+        out = pipe(prompt, num_inference_steps=int(steps), guidance_scale=guidance_scale, generator=generator,
+                   output_type="mesh")
+    decoded = out.images[0]
+    mesh = shap_e_to_mesh(decoded)
+    info = {"backend": "diffusers", "model": "ShapEPipeline", "checkpoint": str(checkpoint), "prompt": prompt,
+            "seed": int(seed), "steps": int(steps), "guidance_scale": guidance_scale, "device": str(dev),
+            "vertices": mesh.num_vertices, "faces": int(len(mesh.faces)), "seconds": round(time.perf_counter() - start, 3)}
+    return GenerationResult(mesh, info, [])
+
+
+def shap_e_to_mesh(decoded) -> Mesh:
+    """Shap-E's MeshDecoderOutput (Z up) -> canonical Mesh (Y up, facing +Z) with vertex colours."""
+    verts = decoded.verts.detach().float().cpu().numpy().astype(np.float64)  # [N, 3]
+    faces = decoded.faces.detach().cpu().numpy().astype(np.int32)  # [F, 3]
+    if len(verts) == 0 or len(faces) == 0:
+        raise UserError("Shap-E produced an empty mesh (no surface in its SDF); try another seed or prompt")
+    channels = decoded.vertex_channels
+    rgb = np.stack([channels[k].detach().float().cpu().numpy() for k in ("R", "G", "B")], 1)
+    # Shap-E's world is Z up with objects facing -Y: rotate to Y up, facing +Z.
+    verts = np.stack([verts[:, 0], verts[:, 2], -verts[:, 1]], 1)
+    mesh = Mesh(verts.astype(np.float32), faces, np.clip(rgb, 0, 1).astype(np.float32))
+    mesh, _ = normalize(mesh.validate("Shap-E output"), facing="+z")
+    return mesh
+
+
+# ---------------------------------------------------------------- external command
+
+
+def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: float | None = None,
+                          facing: str = "auto") -> GenerationResult:
+    """Run a user command template (placeholders {prompt} {out} {seed}) that writes a mesh into {out}.
+
+    {out} is an empty folder; the command may write any mesh file there (glb/gltf/vrm/obj/ply).
+    """
+    if "{out}" not in template:
+        raise UserError("--command must contain {out} (the folder the command writes its mesh into)")
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="t2bs-command-") as tmp:
+        out = Path(tmp) / "out"
+        out.mkdir()
+        try:
+            line = template.format(prompt=shlex.quote(prompt), out=shlex.quote(str(out)), seed=int(seed))
+        except (KeyError, IndexError, ValueError) as exc:
+            raise UserError(f"--command template: unknown or malformed placeholder ({exc}); use {{prompt}} {{out}} {{seed}}") from None
+        try:
+            proc = subprocess.run(line, shell=True, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise UserError(f"--command did not finish within {timeout} s: {line}") from None
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip() or proc.stdout.strip() or "no output").splitlines()[-1]
+            raise UserError(f"--command failed with exit code {proc.returncode}: {tail}")
+        found = sorted((p for p in out.rglob("*") if p.suffix.lower() in MESH_SUFFIXES),
+                       key=lambda p: (MESH_SUFFIXES.index(p.suffix.lower()), str(p)))
+        if not found:
+            raise UserError(f"--command finished but wrote no mesh ({', '.join(MESH_SUFFIXES)}) into {{out}}: {line}")
+        result = generate_from_file(found[0], prompt, facing=facing)
+    result.info.update({"backend": "command", "command": template, "seed": int(seed), "output_file": found[0].name,
+                        "seconds": round(time.perf_counter() - start, 3)})
+    return result
+
+
+# ---------------------------------------------------------------- file
+
+
+def generate_from_file(path: Path, prompt: str = "", facing: str = "auto") -> GenerationResult:
+    """Any mesh the foundation loader reads, moved to the canonical frame."""
+    from t2bs.geometry.io import load_mesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such mesh file")
+    start = time.perf_counter()
+    mesh = load_mesh(path)
+    if facing == "auto":
+        facing = "-z" if path.suffix.lower() == ".vrm" else detect_facing(mesh)
+    mesh, transform = normalize(mesh, facing)
+    info = {"backend": "file", "source": str(path), "prompt": prompt, "facing": facing, "transform": transform,
+            "vertices": mesh.num_vertices, "faces": int(len(mesh.faces)), "seconds": round(time.perf_counter() - start, 3)}
+    return GenerationResult(mesh, info, [])

@@ -1,0 +1,116 @@
+"""`t2bs reconstruct DIR`: VCDGS on every expression grid of a project (paper §3.2).
+
+For each DIR/videos/<video_id>/ (a VideoGrid folder) writes DIR/recon/<video_id>/:
+vertices.npy [T, N, 3] (canonical view, the character's topology), animation.glb, state.pt,
+preview.mp4, metrics.json and, last, done.json. Finished videos whose inputs and settings are
+unchanged are skipped; a video interrupted mid-training continues from its checkpoint.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from t2bs.errors import UserError
+from t2bs.project import Project, content_key, is_done, mark_done
+from t2bs.recon.config import METHODS, PRESETS, VCDGSConfig, preset
+
+
+def list_videos(project: Project, videos: list[str] | None) -> list[Path]:
+    """Grid folders of the project, optionally filtered by id (UserError for unknown ids)."""
+    root = project.path("videos")
+    found = sorted(p for p in root.glob("*") if (p / "grid.json").exists()) if root.is_dir() else []
+    if not found:
+        raise UserError(f"{project.root}: no video grids in videos/ (run `t2bs videos {project.root}` first)")
+    if videos:
+        wanted = [v for item in videos for v in item.split(",") if v]
+        by_id = {p.name: p for p in found}
+        missing = [v for v in wanted if v not in by_id]
+        if missing:
+            raise UserError(f"unknown video id {missing[0]!r}; have {', '.join(sorted(by_id))}")
+        found = [by_id[v] for v in wanted]
+    return found
+
+
+def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
+    """metrics.json: losses, time, which perceptual loss ran; geometry errors when the grid has GT."""
+    from t2bs.recon.vcdgs import evaluate_image_loss
+
+    m = {"method": cfg.method, "seconds": round(result.seconds, 2), "perceptual_loss": result.loss_kind,
+         "iterations": cfg.iterations, "control_points": cfg.num_control_points, "resolution": cfg.resolution,
+         "first_train_loss": result.history.get("first_image_loss"), "final_train_loss": result.history.get("final_image_loss"),
+         "huber_static": evaluate_image_loss(result.model, result.data, cfg, deformed=False),
+         "huber_recon": evaluate_image_loss(result.model, result.data, cfg, deformed=True)}
+    if grid.gt_vertices is not None:
+        from t2bs.eval.metrics import geometry_metrics
+
+        static = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
+        m["geometry"] = geometry_metrics(result.vertices, grid.gt_vertices, mesh.vertices, mesh.faces)
+        m["geometry_static"] = geometry_metrics(static, grid.gt_vertices, mesh.vertices, mesh.faces)
+    return m
+
+
+def reconstruct_video(project: Project, grid_dir: Path, cfg: VCDGSConfig, progress: bool = True,
+                      preview: bool = True) -> tuple[Path, bool]:
+    """One VCDGS job (resumable). Returns (output folder, whether it ran)."""
+    from t2bs.recon.extract import write_outputs
+    from t2bs.recon.vcdgs import reconstruct_grid
+    from t2bs.video.grid import load_grid
+
+    out = project.path("recon", grid_dir.name)
+    key = content_key(grid_dir, project.mesh_path, cfg.to_dict())
+    if is_done(out, key):
+        return out, False
+    mesh = project.load_character()
+    grid = load_grid(grid_dir)
+    if grid.gt_vertices is not None and grid.gt_vertices.shape[1] != mesh.num_vertices:
+        raise UserError(f"{grid_dir}: ground truth has {grid.gt_vertices.shape[1]} vertices, the character {mesh.num_vertices}")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "done.json").unlink(missing_ok=True)
+    ckpt = out / "checkpoint.pt"
+    result = reconstruct_grid(mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key)
+    metrics = job_metrics(result, mesh, grid, cfg)
+    write_outputs(out, mesh, grid, result, cfg, metrics, preview=preview)
+    ckpt.unlink(missing_ok=True)
+    mark_done(out, key, seconds=round(result.seconds, 2), method=cfg.method)
+    return out, True
+
+
+def reconstruct_command(
+    project_dir: Path = typer.Argument(..., help="Project folder with character/mesh.glb and videos/<id>/ grids."),
+    videos: list[str] = typer.Option(None, "--videos", help="Video ids to reconstruct (repeat or comma-separate); default all."),
+    preset_name: str = typer.Option("quick", "--preset", help=f"Settings: {' | '.join(PRESETS)} (quick = CPU minutes, paper = GPU, §4.1)."),
+    method: str = typer.Option("full", help=f"Method or ablation: {' | '.join(METHODS)}."),
+    iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
+    control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda."),
+    lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
+    no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
+) -> None:
+    """Recover per-frame meshes from each multi-view grid with VCDGS (resumable)."""
+    project = Project(project_dir)
+    if not project.mesh_path.exists():
+        raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
+    overrides: dict = {"method": method, "device": device}
+    if iterations:
+        overrides["iterations"] = iterations
+        overrides["global_iters"] = min(PRESETS[preset_name].global_iters if preset_name in PRESETS else 0, iterations // 5)
+    if control_points:
+        overrides["num_control_points"] = control_points
+    if lpips_weights:
+        overrides["lpips_weights"] = lpips_weights
+    cfg = preset(preset_name, **overrides)
+    grids = list_videos(project, videos)
+    t0 = time.time()
+    done, ran = [], 0
+    for i, g in enumerate(grids):
+        print(f"[{i + 1}/{len(grids)}] {g.name}", flush=True)
+        out, did = reconstruct_video(project, g, cfg, progress=True, preview=not no_preview)
+        ran += did
+        print(f"  {'reconstructed' if did else 'up to date'}: {out}", flush=True)
+        done.append(g.name)
+    project.record_stage("recon", backend="vcdgs", config=cfg.to_dict(), preset=preset_name, videos=done,
+                         ran=ran, seconds=round(time.time() - t0, 2))

@@ -1,0 +1,123 @@
+"""VCDGS configuration (paper §3.2, §4.1 and the appendix) with two presets.
+
+``quick``: CPU, minutes per video (128 px, a few hundred control points, ~1k iterations).
+``paper``: GPU, the paper's values (2000 control points, 60k iterations, 512 px).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+from t2bs.errors import UserError
+
+METHODS = ("full", "no_view", "no_refine", "no_lbs", "no_global")
+
+
+@dataclass
+class VCDGSConfig:
+    # --- data ---
+    resolution: int = 128  # training image size (longer side, px); the rasterizer cost grows with it
+    holdout_views: tuple[int, ...] = ()  # views never trained on (the benchmark renders them for PSNR/SSIM)
+    # --- static Gaussians (one per mesh vertex) ---
+    static_iters: int = 150  # Adam steps fitting scale/orientation/colour to renders of the static mesh
+    static_lr: float = 0.01  # learning rate of that fit (log-scales, quaternions, colours)
+    static_views_per_iter: int = 3  # views rendered per static-fit step
+    flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
+    static_shading: str = "auto"  # mesh shading for the static fit: auto (the grid's, from its meta) | unlit | lambert
+    # --- control points (appendix) ---
+    num_control_points: int = 400  # k; the paper uses 2000
+    knn: int = 10  # control points per Gaussian (paper: 10)
+    control_neighbours: int = 6  # control-point neighbours used by the rigidity regulariser
+    # --- networks ---
+    hidden: int = 128  # MLP width (Deform, Refine, per-Gaussian)
+    depth: int = 4  # hidden layers
+    refine_hidden: int = 32  # RefineMLP width (it runs on every Gaussian of every (v, t) pair)
+    refine_depth: int = 2  # RefineMLP hidden layers
+    pos_freqs: int = 6  # Fourier frequencies of control-point / Gaussian positions
+    time_freqs: int = 5  # Fourier frequencies of normalised time
+    view_freqs: int = 3  # Fourier frequencies of the normalised view index
+    # --- optimisation ---
+    iterations: int = 900  # total steps (global warm-up included)
+    global_iters: int = 150  # warm-up steps that fit only the global SE(3) per (v, t) (paper: "first fit the global transformation")
+    batch_size: int = 4  # (v, t) pairs rendered per step
+    canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)
+    lr_deform: float = 2e-3  # Adam lr of DeformMLP / per-Gaussian MLP (decays x lr_final_ratio)
+    lr_global: float = 5e-3  # Adam lr of the global SE(3) tables
+    lr_refine: float = 1e-3  # Adam lr of RefineMLP
+    lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
+    # --- loss (eq. 2: Huber + perceptual) ---
+    huber_delta: float = 0.1  # Huber transition on RGB differences in 0..1
+    pyramid_levels: int = 3  # Huber also on 2x, 4x, ... average-pooled images: widens the basin of large motions
+    mask_weight: float = 0.5  # Huber between rendered alpha and the grid's foreground masks (when the grid has masks)
+    perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
+    perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"
+    lpips_weights: str = ""  # path to an lpips-style state dict (AlexNet features + lin layers), see losses.py
+    # --- regularisers (documented in vcdgs.py) ---
+    rigidity_weight: float = 1.0  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
+    temporal_weight: float = 0.5  # adjacent frames' control-point motion is smooth
+    view_residual_weight: float = 1.0  # view-dependent part of the deformation stays small
+    refine_weight: float = 0.1  # RefineMLP offsets stay small (appearance only, not geometry)
+    # --- ablations ---
+    method: str = "full"  # full | no_view | no_refine | no_lbs | no_global
+    # --- misc ---
+    seed: int = 0  # every random choice (sampling, init) derives from it
+    device: str = "auto"  # "auto" (cuda if available), "cpu", "cuda"
+    threads: int = 1  # torch CPU threads; 1 is fastest on a shared 2-core machine (OpenMP spin-waits), 0 = torch default
+    checkpoint_every: int = 200  # steps between resumable checkpoints (0 = never)
+    preview_side_view: int = 0  # view index shown next to the canonical one in preview.mp4
+
+    def validate(self) -> "VCDGSConfig":
+        if self.method not in METHODS:
+            raise UserError(f"unknown method {self.method!r}; use one of {', '.join(METHODS)}")
+        if self.resolution < 16:
+            raise UserError(f"resolution {self.resolution} is too small (>= 16 px)")
+        if self.num_control_points < 1 or self.knn < 1:
+            raise UserError("num_control_points and knn must be >= 1")
+        if self.perceptual not in ("auto", "lpips", "dssim", "none"):
+            raise UserError(f"perceptual must be auto|lpips|dssim|none, got {self.perceptual!r}")
+        if self.iterations < 1 or self.global_iters < 0 or self.batch_size < 1:
+            raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
+        return self
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["holdout_views"] = list(self.holdout_views)
+        return d
+
+    @property
+    def use_view(self) -> bool:
+        return self.method != "no_view"
+
+    @property
+    def use_refine(self) -> bool:
+        return self.method != "no_refine"
+
+    @property
+    def use_lbs(self) -> bool:
+        return self.method != "no_lbs"
+
+    @property
+    def use_global(self) -> bool:
+        return self.method != "no_global"
+
+
+PRESETS = {
+    "quick": VCDGSConfig(),
+    # §4.1 and the appendix: 2000 control points, 60k iterations, 512 px renders, wider MLPs.
+    "paper": VCDGSConfig(resolution=512, static_iters=2000, num_control_points=2000, hidden=256, depth=6,
+                         refine_hidden=64, refine_depth=3, pos_freqs=8, time_freqs=6, iterations=60000, global_iters=3000, batch_size=4,
+                         pyramid_levels=4, checkpoint_every=2000, device="auto", threads=0),
+}
+
+
+def preset(name: str, **overrides) -> VCDGSConfig:
+    """A copy of the named preset with ``overrides`` applied (UserError for unknown names)."""
+    if name not in PRESETS:
+        raise UserError(f"unknown preset {name!r}; use one of {', '.join(PRESETS)}")
+    bad = [k for k in overrides if k not in VCDGSConfig.__dataclass_fields__]
+    if bad:
+        raise UserError(f"unknown VCDGS option(s): {', '.join(bad)}")
+    return replace(PRESETS[name], **overrides).validate()
+
+
+__all__ = ["VCDGSConfig", "PRESETS", "METHODS", "preset", "field"]

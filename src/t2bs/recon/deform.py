@@ -1,0 +1,205 @@
+"""The VCDGS deformation model (paper §3.2): DeformMLP, global SE(3), RefineMLP.
+
+T~_k(v, t) = T_global(v, t) . DeformMLP(p_k, v, t), positions and rotations blended by LBS.
+
+View conditioning that cannot corrupt the canonical view: both the global transform and the
+DeformMLP are a *shared* part (depends on t only) plus a *view residual* (depends on v and t)
+that is multiplied by 0 at the canonical view. Training on view v > 0 can bend the geometry to
+match that view's distortions through the residual, while T(v = canonical, t) is exactly the
+shared part: the output the paper extracts ("we use T_{0,t} to construct the final
+blendshape"). The residual is also L2-regularised (vcdgs.py) so that it explains only what the
+shared deformation cannot.
+
+Ablations (config.method): ``no_view`` drops every view residual (global per t, DeformMLP(p, t));
+``no_lbs`` replaces the control points by a per-Gaussian deformation MLP(x, v, t) as in 4D-GS;
+``no_global`` drops T_global and its warm-up; ``no_refine`` drops RefineMLP.
+"""
+
+from __future__ import annotations
+
+import math
+
+import roma
+import torch
+from torch import nn
+
+from t2bs.recon.lbs import apply_rigid, lbs
+
+
+def fourier(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """[..., D] -> [..., D * (1 + 2 * freqs)]: x, sin(2^l pi x), cos(2^l pi x)."""
+    if freqs <= 0:
+        return x
+    scales = (2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)) * math.pi  # [L]
+    xs = x[..., None] * scales  # [..., D, L]
+    return torch.cat([x, torch.sin(xs).flatten(-2), torch.cos(xs).flatten(-2)], dim=-1)
+
+
+def mlp(d_in: int, d_out: int, hidden: int, depth: int) -> nn.Sequential:
+    """ReLU MLP whose last layer starts at zero: the model starts at the rest pose / no offset."""
+    layers: list[nn.Module] = []
+    d = d_in
+    for _ in range(depth):
+        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    last = nn.Linear(d, d_out)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    layers.append(last)
+    return nn.Sequential(*layers)
+
+
+class CondMLP(nn.Module):
+    """MLP over (point features [P, Dp], condition features [B, Dc]) -> [B, P, out].
+
+    The first layer is split, W [f_p; f_c] = W_p f_p + W_c f_c, so the point part is computed
+    once per step rather than once per (view, time) pair: the same network as an MLP on the
+    concatenated input, at a fraction of the cost on CPU. Last layer zero-initialised.
+    """
+
+    def __init__(self, d_point: int, d_cond: int, d_out: int, hidden: int, depth: int):
+        super().__init__()
+        self.point_in = nn.Linear(d_point, hidden)
+        self.cond_in = nn.Linear(d_cond, hidden, bias=False)
+        self.body = mlp(hidden, d_out, hidden, max(depth - 1, 0))
+
+    def forward(self, point_feat: torch.Tensor, cond_feat: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(self.point_in(point_feat)[None] + self.cond_in(cond_feat)[:, None])  # [B, P, H]
+        return self.body(h)
+
+
+class DeformMLP(nn.Module):
+    """(p_k, v, t) -> rotation vector [3] + translation [3] per point.
+
+    Used on control points (LBS) or, for the ``no_lbs`` ablation, on every Gaussian.
+    ``forward`` returns the shared part and the view residual separately (residual = 0 at the
+    canonical view or when view conditioning is off).
+    """
+
+    def __init__(self, hidden: int, depth: int, pos_freqs: int, time_freqs: int, view_freqs: int,
+                 view_conditioned: bool, translation_scale: float = 0.1):
+        super().__init__()
+        self.pos_freqs, self.time_freqs, self.view_freqs = pos_freqs, time_freqs, view_freqs
+        self.view_conditioned = view_conditioned
+        self.translation_scale = translation_scale  # outputs are O(1); scene motion is O(0.1)
+        d_p, d_t, d_v = 3 * (1 + 2 * pos_freqs), 1 + 2 * time_freqs, 1 + 2 * view_freqs
+        self.shared = CondMLP(d_p, d_t, 6, hidden, depth)
+        self.residual = CondMLP(d_p, d_t + d_v, 6, hidden // 2, max(depth - 1, 1)) if view_conditioned else None
+        self.register_buffer("scale", torch.tensor([1.0, 1.0, 1.0] + [translation_scale] * 3))
+
+    def forward(self, pe: torch.Tensor, v: torch.Tensor, t: torch.Tensor, view_on: torch.Tensor):
+        """pe [P, Dp] = fourier(points, pos_freqs); v, t [B] normalised to [-1, 1] and [0, 1];
+        view_on [B] 0/1 -> (shared [B, P, 6], residual [B, P, 6]) as (rotvec, translation)."""
+        te = fourier(t[:, None], self.time_freqs)  # [B, Dt]
+        shared = self.shared(pe, te) * self.scale
+        if self.residual is None or not bool(view_on.any()):
+            return shared, torch.zeros_like(shared)
+        ve = fourier(v[:, None], self.view_freqs)
+        res = self.residual(pe, torch.cat([te, ve], -1)) * self.scale * view_on[:, None, None]
+        return shared, res
+
+
+class GlobalSE3(nn.Module):
+    """Global rigid motion per (v, t): a shared table per t plus a view residual table per (v, t)."""
+
+    def __init__(self, views: int, frames: int, view_conditioned: bool):
+        super().__init__()
+        self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T, rotvec 3 + translation 3]
+        self.residual = nn.Parameter(torch.zeros(views, frames, 6)) if view_conditioned else None
+
+    def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, view_on: torch.Tensor):
+        """-> (shared [B, 6], residual [B, 6])."""
+        shared = self.shared[t_idx]
+        if self.residual is None:
+            return shared, torch.zeros_like(shared)
+        return shared, self.residual[v_idx, t_idx] * view_on[:, None]
+
+
+class RefineMLP(nn.Module):
+    """(x, v, t) -> colour offset [3], log-scale offset [3], rotation-vector offset [3] (training only).
+
+    x is the Gaussian's rest position (its identity); the offsets are per (view, time).
+    """
+
+    def __init__(self, hidden: int, depth: int, pos_freqs: int, time_freqs: int, view_freqs: int):
+        super().__init__()
+        self.pos_freqs, self.time_freqs, self.view_freqs = pos_freqs, time_freqs, view_freqs
+        d_p, d_c = 3 * (1 + 2 * pos_freqs), 1 + 2 * time_freqs + 1 + 2 * view_freqs
+        self.net = CondMLP(d_p, d_c, 9, hidden, depth)
+
+    def forward(self, pe: torch.Tensor, v: torch.Tensor, t: torch.Tensor):
+        """pe [N, Dp] = fourier(rest positions, pos_freqs); v, t [B] -> (dc, dlogs, drot), each [B, N, 3]."""
+        cond = torch.cat([fourier(t[:, None], self.time_freqs), fourier(v[:, None], self.view_freqs)], -1)
+        out = self.net(pe, cond)
+        # Colour offsets may be large (lighting); scale/rotation offsets stay small.
+        return out[..., :3], 0.3 * torch.tanh(out[..., 3:6]), 0.2 * torch.tanh(out[..., 6:9])
+
+
+class VCDGSModel(nn.Module):
+    """Static Gaussians + control points + the deformation networks; ``forward`` gives the
+    Gaussians of a batch of (view, time) pairs."""
+
+    def __init__(self, means, quats, log_scales, colors, cp_positions, neighbours, weights, views: int, frames: int,
+                 canonical_view: int, cfg):
+        super().__init__()
+        f32 = torch.float32
+        self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
+        self.register_buffer("quats", torch.as_tensor(quats, dtype=f32))  # [N, 4] XYZW
+        self.register_buffer("log_scales", torch.as_tensor(log_scales, dtype=f32))  # [N, 3]
+        self.register_buffer("colors", torch.as_tensor(colors, dtype=f32))  # [N, 3]
+        self.register_buffer("cp", torch.as_tensor(cp_positions, dtype=f32))  # [K, 3]
+        self.register_buffer("neighbours", torch.as_tensor(neighbours, dtype=torch.int64))  # [N, knn]
+        self.register_buffer("weights", torch.as_tensor(weights, dtype=f32))  # [N, knn]
+        self.views, self.frames, self.canonical_view = views, frames, canonical_view
+        self.use_view, self.use_refine, self.use_lbs, self.use_global = cfg.use_view, cfg.use_refine, cfg.use_lbs, cfg.use_global
+        self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view)
+        self.global_se3 = GlobalSE3(views, frames, cfg.use_view) if cfg.use_global else None
+        self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.pos_freqs, cfg.time_freqs,
+                                cfg.view_freqs) if cfg.use_refine else None
+        # Fourier features of the fixed points, computed once (positions never change).
+        self.register_buffer("pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.pos_freqs), persistent=False)
+        self.register_buffer("pe_means", fourier(self.means, cfg.pos_freqs), persistent=False)
+
+    # -- encodings of the discrete view / time indices --
+    def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:
+        return (v_idx.float() - self.canonical_view) / max(self.views - 1, 1) * 2.0
+
+    def norm_t(self, t_idx: torch.Tensor) -> torch.Tensor:
+        return t_idx.float() / max(self.frames - 1, 1)
+
+    def view_on(self, v_idx: torch.Tensor) -> torch.Tensor:
+        return (v_idx != self.canonical_view).float()
+
+    def control_transforms(self, v_idx: torch.Tensor, t_idx: torch.Tensor, use_view: bool = True):
+        """Per control point (or per Gaussian for no_lbs): (shared [B, P, 6], residual [B, P, 6])."""
+        on = self.view_on(v_idx) if use_view else torch.zeros(len(v_idx), device=v_idx.device)
+        return self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), on)
+
+    def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, refine: bool = True, use_view: bool = True) -> dict:
+        """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]
+        (linear), colors [B, N, 3], plus the raw parts the regularisers need."""
+        shared, res = self.control_transforms(v_idx, t_idx, use_view)
+        local = shared + res  # [B, P, 6]
+        if self.use_lbs:
+            x, q = lbs(self.means, self.quats, self.cp, local[..., :3], local[..., 3:], self.neighbours, self.weights)
+        else:
+            rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, N, 3, 3]: each Gaussian about itself
+            x = self.means[None] + local[..., 3:]
+            q = roma.quat_product(roma.rotmat_to_unitquat(rot), self.quats[None].expand(len(t_idx), -1, -1))
+        g_shared = g_res = None
+        if self.global_se3 is not None:
+            on = self.view_on(v_idx) if use_view else torch.zeros(len(v_idx), device=v_idx.device)
+            g_shared, g_res = self.global_se3(v_idx, t_idx, on)
+            g = g_shared + g_res
+            x, q = apply_rigid(x, q, g[:, :3], g[:, 3:])
+        log_s = self.log_scales[None].expand(len(t_idx), -1, -1)
+        col = self.colors[None].expand(len(t_idx), -1, -1)
+        offsets = None
+        if refine and self.refine is not None:
+            dc, ds, dr = self.refine(self.pe_means, self.norm_v(v_idx), self.norm_t(t_idx))
+            col = col + dc
+            log_s = log_s + ds
+            q = roma.quat_product(q, roma.rotvec_to_unitquat(dr))
+            offsets = (dc, ds, dr)
+        return {"means": x, "quats": q, "scales": log_s.exp(), "colors": col.clamp(0.0, 1.0),
+                "shared": shared, "residual": res, "g_shared": g_shared, "g_residual": g_res, "offsets": offsets}

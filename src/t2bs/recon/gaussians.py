@@ -1,0 +1,128 @@
+"""Static Gaussians of the character (paper §3.2): one per mesh vertex, so the deformed
+Gaussians ARE the deformed vertices.
+
+Positions = vertices, colours = the texture at each vertex, opacity 1. Each Gaussian starts as
+a flat disk in the vertex's tangent plane whose radius follows the local edge length; scale,
+orientation and colour are then fitted (Adam) so that the splat render matches renders of the
+static mesh from the grid's cameras (the colour fit bakes the renderer's shading in; the
+RefineMLP absorbs what differs per view/time). Positions stay fixed: they are the mesh.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from t2bs.geometry.camera import Camera
+from t2bs.geometry.mesh import Mesh
+from t2bs.recon.lbs import quat_from_normals, to_wxyz
+
+_warned_backend = False
+
+
+@dataclass
+class StaticGaussians:
+    means: np.ndarray  # [N, 3] float32 = mesh vertices
+    quats: np.ndarray  # [N, 4] float32 XYZW (roma convention)
+    log_scales: np.ndarray  # [N, 3] float32 log standard deviations (tangent, tangent, normal)
+    colors: np.ndarray  # [N, 3] float32 in [0, 1]
+    fit_loss: float = float("nan")  # final L1 of the static fit (0..1 image units)
+
+
+def camera_tensors(cameras: list[Camera], device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """-> viewmats [C, 4, 4], Ks [C, 3, 3] float32."""
+    vm = torch.tensor(np.stack([c.world_to_camera for c in cameras]), dtype=torch.float32, device=device)
+    ks = torch.tensor(np.stack([c.K for c in cameras]), dtype=torch.float32, device=device)
+    return vm, ks
+
+
+def render(means, quats_xyzw, scales, colors, viewmats, ks, width: int, height: int, background=(1.0, 1.0, 1.0),
+           backend: str = "auto") -> dict:
+    """Splat render with the Gaussians in this package's convention (XYZW quats, opacity 1).
+
+    Shapes: [C, N, ...] or [N, ...] per tensor; returns rgb [C, H, W, 3], alpha [C, H, W, 1].
+    Falls back to the reference rasterizer (once warned) when the fast CPU kernel is missing.
+    """
+    from t2bs.render.splat import rasterize_gaussians
+
+    global _warned_backend
+    n = means.shape[-2]
+    opac = torch.ones(n, dtype=means.dtype, device=means.device)
+    bg = torch.tensor(background, dtype=means.dtype, device=means.device)
+    try:
+        return rasterize_gaussians(means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height,
+                                   background=bg, backend=backend)
+    except ImportError as exc:  # the fast kernel's module is not there (yet): same rules, slower
+        if not _warned_backend:
+            warnings.warn(f"splat backend {backend!r} unavailable ({exc}); using the reference rasterizer", stacklevel=2)
+            _warned_backend = True
+        return rasterize_gaussians(means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height,
+                                   background=bg, backend="reference")
+
+
+def init_static_gaussians(mesh: Mesh, flatness: float = 0.25) -> StaticGaussians:
+    """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length."""
+    v = mesh.vertices.astype(np.float64)
+    f = mesh.faces.astype(np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    total = np.zeros(len(v))
+    count = np.zeros(len(v))
+    for k in (0, 1):
+        np.add.at(total, e[:, k], length)
+        np.add.at(count, e[:, k], 1)
+    fallback = float(np.median(length)) if len(length) else 0.01
+    mean_edge = np.where(count > 0, total / np.maximum(count, 1), fallback)
+    mean_edge = np.clip(mean_edge, 0.2 * fallback, 5.0 * fallback)
+    s = 0.5 * mean_edge
+    log_scales = np.log(np.stack([s, s, flatness * s], 1))
+    normals = torch.as_tensor(mesh.vertex_normals(), dtype=torch.float32)
+    quats = quat_from_normals(normals).numpy()
+    return StaticGaussians(mesh.vertices.astype(np.float32), quats.astype(np.float32), log_scales.astype(np.float32),
+                           mesh.vertex_rgb().astype(np.float32))
+
+
+def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.ndarray | None, cameras: list[Camera],
+                         iters: int = 150, lr: float = 0.01, views_per_iter: int = 3, seed: int = 0,
+                         device: str = "cpu", progress: bool = False) -> StaticGaussians:
+    """Fit scales, orientations and colours to ``targets`` [C, H, W, 3] float 0..1 (renders of the
+    static mesh from ``cameras``), ``masks`` [C, H, W] float or None. Positions stay fixed."""
+    if iters <= 0:
+        return gs
+    from tqdm import tqdm
+
+    gen = torch.Generator().manual_seed(seed)
+    dev = torch.device(device)
+    means = torch.as_tensor(gs.means, device=dev)
+    log_s = torch.nn.Parameter(torch.as_tensor(gs.log_scales, device=dev).clone())
+    quats = torch.nn.Parameter(torch.as_tensor(gs.quats, device=dev).clone())
+    col_logit = torch.nn.Parameter(torch.logit(torch.as_tensor(gs.colors, device=dev).clamp(0.02, 0.98)))
+    opt = torch.optim.Adam([{"params": [log_s, quats], "lr": lr}, {"params": [col_logit], "lr": 2 * lr}])
+    tgt = torch.as_tensor(targets, dtype=torch.float32, device=dev)
+    msk = None if masks is None else torch.as_tensor(masks, dtype=torch.float32, device=dev)
+    vm, ks = camera_tensors(cameras, dev)
+    h, w = tgt.shape[1:3]
+    c = len(cameras)
+    last = float("nan")
+    bar = tqdm(range(iters), desc="static Gaussians", leave=False, disable=not progress)
+    for _ in bar:
+        idx = torch.randperm(c, generator=gen)[:min(views_per_iter, c)].to(dev)
+        q = quats / quats.norm(dim=-1, keepdim=True)
+        out = render(means, q, log_s.exp(), torch.sigmoid(col_logit), vm[idx], ks[idx], w, h)
+        loss = (out["rgb"] - tgt[idx]).abs().mean()
+        if msk is not None:
+            loss = loss + 0.5 * (out["alpha"][..., 0] - msk[idx]).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        with torch.no_grad():  # keep splats from growing into blobs or vanishing
+            log_s.clamp_(min=float(np.log(1e-4)), max=float(np.log(0.05)))
+        last = float(loss.detach())
+        bar.set_postfix(loss=f"{last:.4f}")
+    with torch.no_grad():
+        q = quats / quats.norm(dim=-1, keepdim=True)
+        return StaticGaussians(gs.means, q.cpu().numpy().astype(np.float32), log_s.cpu().numpy().astype(np.float32),
+                               torch.sigmoid(col_logit).cpu().numpy().astype(np.float32), last)

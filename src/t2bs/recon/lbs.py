@@ -1,0 +1,91 @@
+"""Linear blend skinning of Gaussian positions and rotations (paper eq. 1).
+
+Each control point k carries a rigid transform given as a rotation vector r_k and a
+translation t_k *about the control point*: T_k x = R_k (x - p_k) + p_k + t_k. This is an
+ordinary SE(3) (rotation R_k, translation p_k + t_k - R_k p_k); expressing it about p_k keeps the
+translation and rotation decoupled, which makes the zero-initialised MLP outputs well
+conditioned. Positions blend linearly (x_t = sum_k w_k T_k x); orientations blend as
+normalised weighted unit quaternions (hemisphere-aligned), then compose with the Gaussian's
+rest orientation. Quaternions here are roma's XYZW; the rasterizer wants WXYZ (``to_wxyz``).
+"""
+
+from __future__ import annotations
+
+import roma
+import torch
+
+
+def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbours: torch.Tensor,
+           weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Blend per-control-point transforms per Gaussian with one gather.
+
+    -> (M [B, N, 3, 3] blended rotation matrices, b [B, N, 3] blended offsets, q [B, N, 4] XYZW
+    blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k)."""
+    rot = roma.rotvec_to_rotmat(rotvec)  # [B, K, 3, 3]
+    off = p + trans - torch.einsum("bkij,kj->bki", rot, p)  # [B, K, 3]
+    q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
+    q = torch.where(q[..., 3:4] < 0, -q, q)  # one hemisphere, so that the average is meaningful
+    packed = torch.cat([rot.flatten(-2), off, q], -1)  # [B, K, 16]
+    blended = torch.einsum("nj,bnjc->bnc", weights, packed[:, neighbours])  # [B, N, 16]
+    bq = blended[..., 12:]
+    return blended[..., :9].unflatten(-1, (3, 3)), blended[..., 9:12], bq / bq.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
+        neighbours: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x [N, 3], q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3] (about p_k), neighbours/weights
+    [N, knn] -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
+    m, b, q = _blend(rotvec, trans, p, neighbours, weights)
+    xt = torch.einsum("bnij,nj->bni", m, x) + b
+    return xt, roma.quat_product(q, q_rest[None].expand_as(q))
+
+
+def lbs_positions(x: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
+                  neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """x [N, 3] rest positions, p [K, 3] control points, rotvec/trans [B, K, 3],
+    neighbours/weights [N, knn] -> [B, N, 3] skinned positions."""
+    m, b, _ = _blend(rotvec, trans, p, neighbours, weights)
+    return torch.einsum("bnij,nj->bni", m, x) + b
+
+
+def blend_rotations(rotvec: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """rotvec [B, K, 3] -> [B, N, 4] XYZW unit quaternion per Gaussian (weighted quaternion blend)."""
+    q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
+    q = torch.where(q[..., 3:4] < 0, -q, q)
+    blended = torch.einsum("nj,bnjc->bnc", weights, q[:, neighbours])  # [B, N, 4]
+    return blended / blended.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def lbs_rotations(q_rest: torch.Tensor, rotvec: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """q_rest [N, 4] XYZW -> [B, N, 4] XYZW: blended control rotation applied to each Gaussian."""
+    blend = blend_rotations(rotvec, neighbours, weights)
+    return roma.quat_product(blend, q_rest[None].expand_as(blend))
+
+
+def apply_rigid(x: torch.Tensor, q: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
+                centre: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """One rigid transform per batch item: x [B, N, 3], q [B, N, 4] XYZW, rotvec/trans [B, 3]
+    -> rotated about ``centre`` [3] (origin by default) and translated."""
+    rot = roma.rotvec_to_rotmat(rotvec)  # [B, 3, 3]
+    c = torch.zeros(3, dtype=x.dtype, device=x.device) if centre is None else centre
+    x2 = torch.einsum("bij,bnj->bni", rot, x - c) + c + trans[:, None, :]
+    qg = roma.rotvec_to_unitquat(rotvec)[:, None, :].expand_as(q)
+    return x2, roma.quat_product(qg, q)
+
+
+def to_wxyz(q: torch.Tensor) -> torch.Tensor:
+    """XYZW (roma) -> WXYZ (rasterizer contract)."""
+    return torch.cat([q[..., 3:4], q[..., :3]], dim=-1)
+
+
+def quat_from_normals(normals: torch.Tensor) -> torch.Tensor:
+    """[N, 3] unit normals -> [N, 4] XYZW rotations taking the local z axis to each normal."""
+    z = torch.zeros_like(normals)
+    z[:, 2] = 1.0
+    axis = torch.cross(z, normals, dim=-1)
+    s = axis.norm(dim=-1, keepdim=True)
+    c = (normals * z).sum(-1, keepdim=True)
+    angle = torch.atan2(s, c)
+    # Normal opposite to z: any perpendicular axis works.
+    axis = torch.where(s > 1e-8, axis / s.clamp_min(1e-12), torch.tensor([1.0, 0.0, 0.0], dtype=normals.dtype))
+    return roma.rotvec_to_unitquat(axis * angle)

@@ -1,0 +1,320 @@
+"""VCDGS training (paper §3.2): register the static character to a multi-view video grid.
+
+Schedule: (1) fit the static Gaussians' scale/orientation/colour to renders of the static mesh
+(gaussians.py); (2) global-only warm-up: only T_global(v, t) is optimised (the paper: "we first
+fit the global transformation"); (3) joint training of T_global, DeformMLP and RefineMLP. Each
+step renders a batch of random (view, time) pairs (a share of them at the canonical view,
+which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
+
+Regularisers (joint stage; all measured in units of the control-point spacing so the weights
+do not depend on the character's size or on k):
+- rigidity (ARAP-like): each control point's transform, applied to its neighbouring control
+  points, should land where their own transforms put them; keeps the LBS field locally rigid
+  where the images do not constrain it (occluded or textureless regions);
+- temporal smoothness: control-point positions at t and t+1 (shared deformation) stay close;
+- view residual: the view-dependent parts (DeformMLP residual and global residual) stay small,
+  so they explain per-view distortions only, never the shared motion;
+- refine: RefineMLP offsets stay small, so appearance changes do not replace geometry.
+
+Resume: a checkpoint (model + optimiser + step + RNG) is written every ``checkpoint_every``
+steps next to the outputs, tagged with the job key; a re-run with the same key continues
+from it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from t2bs.geometry.camera import Camera
+from t2bs.geometry.mesh import Mesh
+from t2bs.recon.config import VCDGSConfig
+from t2bs.recon.control_points import build_control_points
+from t2bs.recon.deform import VCDGSModel
+from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render
+from t2bs.recon.losses import PerceptualLoss, image_loss
+
+
+@dataclass
+class TrainData:
+    images: torch.Tensor  # [V, T, H, W, 3] float 0..1 at the training resolution
+    masks: torch.Tensor | None  # [V, T, H, W] float 0..1 or None
+    cameras: list[Camera]  # [V] resized to the training resolution
+    canonical_view: int  # the paper's v = 0
+    train_views: list[int]  # views used for training (holdout removed)
+
+    @property
+    def views(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def frames(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.images.shape[3]), int(self.images.shape[2])  # (W, H)
+
+
+@dataclass
+class ReconResult:
+    vertices: np.ndarray  # [T, N, 3] at the canonical view
+    model: VCDGSModel
+    data: TrainData
+    history: dict = field(default_factory=dict)  # losses over training
+    seconds: float = 0.0  # wall time of the reconstruction
+    loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
+
+
+def resize_stack(x: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
+    """[..., H, W, C] uint8/float -> float tensor [..., h, w, C] (area filter), size = (w, h)."""
+    t = torch.as_tensor(np.ascontiguousarray(x))
+    lead = t.shape[:-3]
+    t = t.reshape(-1, *t.shape[-3:]).permute(0, 3, 1, 2).float()
+    if t.shape[-2:] != (size[1], size[0]):
+        t = F.interpolate(t, size=(size[1], size[0]), mode="area")
+    if x.dtype == np.uint8:
+        t = t / 255.0
+    return t.permute(0, 2, 3, 1).reshape(*lead, size[1], size[0], -1).contiguous()
+
+
+def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
+    """Downsample the grid to the training resolution (longer side = cfg.resolution)."""
+    h, w = grid.height, grid.width
+    s = min(1.0, cfg.resolution / max(h, w))
+    size = (max(8, round(w * s)), max(8, round(h * s)))
+    images = torch.stack([resize_stack(grid.frames[v], size) for v in range(grid.num_views)])  # [V, T, h, w, 3]
+    masks = None
+    if grid.masks is not None:
+        masks = torch.stack([resize_stack(grid.masks[v][..., None].astype(np.float32), size)[..., 0]
+                             for v in range(grid.num_views)])
+    cams = [c.resized(*size) for c in grid.cameras]
+    hold = {int(v) for v in cfg.holdout_views}
+    if grid.canonical_view in hold:
+        from t2bs.errors import UserError
+
+        raise UserError(f"the canonical view {grid.canonical_view} cannot be held out")
+    train_views = [v for v in range(grid.num_views) if v not in hold]
+    return TrainData(images, masks, cams, int(grid.canonical_view), train_views)
+
+
+def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambert") -> tuple[np.ndarray, np.ndarray]:
+    """Renders of the static mesh: rgb [C, H, W, 3] float, mask [C, H, W] float."""
+    from t2bs.render.mesh_renderer import MeshRenderer
+
+    with MeshRenderer() as r:
+        outs = [r.render(mesh, c, shading=shading) for c in cameras]
+    return np.stack([o.rgb for o in outs]).astype(np.float32), np.stack([o.mask for o in outs]).astype(np.float32)
+
+
+def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False
+                ) -> tuple[VCDGSModel, StaticGaussians]:
+    """Static Gaussians (fitted) + control points -> an untrained VCDGS model."""
+    gs = init_static_gaussians(mesh, cfg.flatness)
+    cams = [data.cameras[v] for v in data.train_views]
+    if cfg.static_iters > 0:
+        if static_targets is None:
+            static_targets = static_mesh_targets(mesh, cams, cfg.static_shading)
+        rgb, mask = static_targets
+        gs = fit_static_gaussians(gs, rgb, mask, cams, cfg.static_iters, cfg.static_lr, cfg.static_views_per_iter,
+                                  cfg.seed, device=_device(cfg).type, progress=progress)
+    cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
+                               seed=cfg.seed)
+    model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
+                       data.views, data.frames, data.canonical_view, cfg)
+    model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
+    p = cps.positions
+    spacing = float(np.median(np.linalg.norm(p[:, None] - p[None], axis=-1)[np.arange(len(p))[:, None], cps.cp_neighbours][:, 0])) \
+        if cps.cp_neighbours.shape[1] else 0.05
+    model.spacing = max(spacing, 1e-4)
+    return model, gs
+
+
+def _device(cfg: VCDGSConfig) -> torch.device:
+    if cfg.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(cfg.device)
+
+
+def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) -> dict:
+    terms = {}
+    s2 = model.spacing ** 2
+    local = out["shared"] + out["residual"]  # [B, P, 6]
+    if model.use_lbs and cfg.rigidity_weight > 0 and model.cp_neighbours.shape[1]:
+        import roma
+
+        p, nb = model.cp, model.cp_neighbours  # [K, 3], [K, m]
+        rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, K, 3, 3]
+        tr = local[..., 3:]
+        pred = torch.einsum("bkij,kmj->bkmi", rot, p[nb] - p[:, None]) + p[:, None] + tr[:, :, None]  # [B, K, m, 3]
+        actual = p[nb] + tr[:, nb]  # [B, K, m, 3]
+        terms["rigidity"] = cfg.rigidity_weight * ((pred - actual) ** 2).sum(-1).mean() / s2
+    if cfg.temporal_weight > 0 and model.frames > 1:
+        step = torch.where(t_idx < model.frames - 1, 1, -1)
+        t2 = t_idx + step
+        shared2, _ = model.control_transforms(v_idx, t2, use_view=False)
+        d = out["shared"] - shared2
+        terms["temporal"] = cfg.temporal_weight * ((d[..., 3:] ** 2).sum(-1).mean() / s2 + (d[..., :3] ** 2).sum(-1).mean())
+    if model.use_view and cfg.view_residual_weight > 0:
+        r = out["residual"]
+        reg = (r[..., 3:] ** 2).sum(-1).mean() / s2 + (r[..., :3] ** 2).sum(-1).mean()
+        if out["g_residual"] is not None:
+            g = out["g_residual"]
+            reg = reg + (g[:, 3:] ** 2).sum(-1).mean() / s2 + (g[:, :3] ** 2).sum(-1).mean()
+        terms["view_residual"] = cfg.view_residual_weight * reg
+    if out["offsets"] is not None and cfg.refine_weight > 0:
+        dc, ds, dr = out["offsets"]
+        terms["refine"] = cfg.refine_weight * ((dc ** 2).mean() + (ds ** 2).mean() + (dr ** 2).mean())
+    return terms
+
+
+def _sample(gen: torch.Generator, data: TrainData, batch: int, canonical_fraction: float):
+    t_idx = torch.randint(0, data.frames, (batch,), generator=gen)
+    views = torch.tensor(data.train_views)
+    v_idx = views[torch.randint(0, len(views), (batch,), generator=gen)]
+    canon = torch.rand(batch, generator=gen) < canonical_fraction
+    v_idx = torch.where(canon, torch.full_like(v_idx, data.canonical_view), v_idx)
+    return v_idx, t_idx
+
+
+def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
+          checkpoint: Path | None = None, key: str = "") -> dict:
+    """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``."""
+    from tqdm import tqdm
+
+    dev = _device(cfg)
+    model.to(dev)
+    images = data.images.to(dev)
+    masks = None if data.masks is None else data.masks.to(dev)
+    vm, ks = camera_tensors(data.cameras, dev)
+    w, h = data.size
+    perceptual = PerceptualLoss(cfg.perceptual, cfg.lpips_weights).to(dev)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    groups = {"deform": (list(model.deform.parameters()), cfg.lr_deform)}
+    if model.global_se3 is not None:
+        groups["global"] = (list(model.global_se3.parameters()), cfg.lr_global)
+    if model.refine is not None:
+        groups["refine"] = (list(model.refine.parameters()), cfg.lr_refine)
+    opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
+    warm = cfg.global_iters if model.global_se3 is not None else 0
+    warm = min(warm, cfg.iterations - 1) if cfg.iterations > 1 else 0
+    history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
+    start = 0
+    if checkpoint is not None and checkpoint.exists():
+        ck = torch.load(checkpoint, map_location=dev, weights_only=False)
+        if ck.get("key") == key:
+            model.load_state_dict(ck["model"])
+            for k, o in opts.items():
+                o.load_state_dict(ck["opts"][k])
+            gen.set_state(ck["gen"])
+            history = ck["history"]
+            start = int(ck["step"])
+    bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
+               total=cfg.iterations)
+    model.train()
+    for step in bar:
+        joint = step >= warm
+        frac = (step - warm) / max(cfg.iterations - warm, 1)
+        for k, o in opts.items():
+            base = groups[k][1]
+            for g in o.param_groups:
+                g["lr"] = base * (cfg.lr_final_ratio ** frac if joint else 1.0)
+        v_idx, t_idx = _sample(gen, data, cfg.batch_size, cfg.canonical_fraction)
+        v_idx, t_idx = v_idx.to(dev), t_idx.to(dev)
+        out = model(v_idx, t_idx, refine=joint)
+        r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
+        terms = image_loss(r, images[v_idx, t_idx], None if masks is None else masks[v_idx, t_idx], perceptual, cfg)
+        img = sum(terms.values())
+        if joint:
+            terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
+        loss = sum(terms.values())
+        for o in opts.values():
+            o.zero_grad(set_to_none=True)
+        loss.backward()
+        if joint:
+            for o in opts.values():
+                o.step()
+        elif "global" in opts:
+            opts["global"].step()
+        if history["first_image_loss"] is None:
+            history["first_image_loss"] = float(img)
+        if step % 10 == 0 or step == cfg.iterations - 1:
+            history["step"].append(step)
+            history["loss"].append(float(loss))
+            history["image"].append(float(img))
+            bar.set_postfix(stage="joint" if joint else "global", loss=f"{float(loss):.4f}")
+        if checkpoint is not None and cfg.checkpoint_every and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
+            from t2bs.project import atomic_path
+
+            with atomic_path(checkpoint) as tmp:
+                torch.save({"key": key, "step": step + 1, "model": model.state_dict(),
+                            "opts": {k: o.state_dict() for k, o in opts.items()}, "gen": gen.get_state(),
+                            "history": history}, tmp)
+    model.eval()
+    history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
+    return history
+
+
+@torch.no_grad()
+def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, deformed: bool = True) -> float:
+    """Mean Huber image loss over every training (view, time) pair (no RefineMLP)."""
+    dev = next(iter(model.buffers())).device
+    vm, ks = camera_tensors(data.cameras, dev)
+    w, h = data.size
+    total, count = 0.0, 0
+    for v in data.train_views:
+        for t0 in range(0, data.frames, 8):
+            t_idx = torch.arange(t0, min(t0 + 8, data.frames), device=dev)
+            v_idx = torch.full_like(t_idx, v)
+            if deformed:
+                out = model(v_idx, t_idx, refine=False)
+                r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
+            else:
+                r = render(model.means, model.quats, model.log_scales.exp(), model.colors, vm[v_idx], ks[v_idx], w, h)
+            tgt = data.images[v_idx.cpu(), t_idx.cpu()].to(dev)
+            total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.huber_delta)) * len(t_idx)
+            count += len(t_idx)
+    return total / max(count, 1)
+
+
+def reconstruct_grid(mesh: Mesh, grid, cfg: VCDGSConfig, progress: bool = True, static_targets=None,
+                     checkpoint: Path | None = None, key: str = "") -> ReconResult:
+    """The whole VCDGS job for one grid: data, static fit, control points, training, extraction."""
+    from t2bs.errors import UserError
+    from t2bs.recon.extract import canonical_vertices
+
+    cfg.validate()
+    if grid.gt_vertices is not None and grid.gt_vertices.shape[1] != mesh.num_vertices:
+        raise UserError(f"grid ground truth has {grid.gt_vertices.shape[1]} vertices but the character has {mesh.num_vertices}")
+    torch.manual_seed(cfg.seed)
+    threads = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key) -> ReconResult:
+    from t2bs.recon.extract import canonical_vertices
+
+    t0 = time.time()
+    data = prepare_data(grid, cfg)
+    if cfg.static_shading == "auto":
+        shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
+        cfg = replace(cfg, static_shading=shading if shading in ("unlit", "lambert") else "lambert")
+    model, _ = build_model(mesh, data, cfg, static_targets, progress)
+    history = train(model, data, cfg, progress, checkpoint, key)
+    verts = canonical_vertices(model)
+    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"))
+
+
+def _fmt(x: float) -> str:
+    return "nan" if not math.isfinite(x) else f"{x:.4f}"

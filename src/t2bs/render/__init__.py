@@ -1,0 +1,1 @@
+"""Renderers: the mesh rasterizer (OpenGL) and the differentiable Gaussian splat rasterizer."""

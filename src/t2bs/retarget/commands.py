@@ -1,0 +1,174 @@
+"""CLI: `t2bs landmarks DIR`, `t2bs retarget DIR --driver VIDEO -o OUT`, `t2bs bench retarget`."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from tqdm import tqdm
+
+from t2bs.errors import UserError
+from t2bs.project import Project, read_json, write_image, write_json
+
+
+def _load_character(project_dir: Path):
+    project = Project(project_dir)
+    if not project.mesh_path.exists():
+        raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
+    from t2bs.geometry.io import load_mesh
+
+    return project, load_mesh(project.mesh_path)
+
+
+def _load_model(project: Project, required: bool):
+    path = project.path("blendshapes", "model.npz")
+    if not path.exists():
+        if required:
+            raise UserError(f"{project.path()}: no blendshapes/model.npz (build the blendshape model first)")
+        return None
+    from t2bs.blendshapes.model import load_model
+
+    return load_model(path)
+
+
+def compute_landmarks(project_dir: Path, backend: str = "auto", override: Optional[Path] = None, show: bool = False):
+    """Detect (or read from the user's JSON) the 20 landmarks; writes DIR/landmarks/landmarks.json."""
+    from t2bs.retarget.landmarks import detect_landmarks, landmarks_from_override, overlay_image
+
+    project, mesh = _load_character(project_dir)
+    model = _load_model(project, required=False)
+    if model is not None and model.num_vertices == mesh.num_vertices:
+        mesh = mesh.with_vertices(model.neutral)
+    regions = None
+    if override is not None:
+        if not Path(override).exists():
+            raise UserError(f"override file {override} does not exist")
+        try:
+            data = json.loads(Path(override).read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError(f"override file {override} is not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        lm = landmarks_from_override(data, mesh)
+    else:
+        lm, regions = detect_landmarks(mesh, backend, model=model)
+    out = project.path("landmarks")
+    write_json(out / "landmarks.json", lm.to_dict())
+    if show:
+        write_image(out / "overlay.png", overlay_image(mesh, lm, regions))
+    project.record_stage("landmarks", backend=lm.backend, config={"backend": backend, "override": str(override) if override else None})
+    return lm
+
+
+def landmarks_command(
+    project_dir: Path = typer.Argument(..., help="project folder (with character/mesh.glb)"),
+    show: bool = typer.Option(False, "--show", help="also write landmarks/overlay.png"),
+    backend: str = typer.Option("auto", "--backend", help="auto | parts | motion | grounding-sam"),
+    override: Optional[Path] = typer.Option(None, "--override", help="JSON with 20 vertex_ids or points2d"),
+) -> None:
+    """Find the character's 20 retargeting landmarks (6 per eye, 8 mouth) on its frontal render."""
+    lm = compute_landmarks(project_dir, backend, override, show)
+    print(f"landmarks ({lm.backend}) -> {Path(project_dir) / 'landmarks' / 'landmarks.json'}")
+    if show:
+        print(f"overlay -> {Path(project_dir) / 'landmarks' / 'overlay.png'}")
+
+
+def _side_by_side(driver: np.ndarray, char: np.ndarray) -> np.ndarray:
+    """Driver frame scaled to the character frame's height, then both side by side (even sizes)."""
+    from PIL import Image
+
+    h = char.shape[0]
+    w = int(round(driver.shape[1] * h / driver.shape[0])) // 2 * 2
+    d = np.asarray(Image.fromarray(driver).resize((w, h), Image.BILINEAR))
+    return np.concatenate([d, char], axis=1)
+
+
+def retarget_command(
+    project_dir: Path = typer.Argument(..., help="project folder (character/mesh.glb, blendshapes/model.npz)"),
+    driver: Path = typer.Option(..., "--driver", help="human face video file or folder of images"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder (default DIR/retarget/<driver name>)"),
+    neutral_frame: Optional[int] = typer.Option(None, "--neutral-frame", help="index of the neutral frame (default: detected)"),
+    smooth: float = typer.Option(1.0, "--smooth", help="temporal smoothing of the landmarks, sigma in frames (0 = off)"),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="use at most this many frames"),
+    size: int = typer.Option(256, "--size", help="preview video height in pixels"),
+) -> None:
+    """Drive the character's blendshape model with a human face video (MediaPipe + landmark solve)."""
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.geometry.io import save_mesh
+    from t2bs.render.mesh_renderer import MeshRenderer
+    from t2bs.retarget.face_tracking import TrackConfig, read_driver, track_face
+    from t2bs.retarget.landmarks import Landmarks
+    from t2bs.retarget.solve import RetargetSolver
+    from t2bs.retarget.transfer import transfer_motion
+
+    t0 = time.perf_counter()
+    project, mesh = _load_character(project_dir)
+    model = _load_model(project, required=True)
+    if model.num_vertices != mesh.num_vertices:
+        raise UserError(f"blendshape model has {model.num_vertices} vertices but the character has {mesh.num_vertices}")
+    lm_path = project.path("landmarks", "landmarks.json")
+    if lm_path.exists():
+        lm = Landmarks.from_dict(read_json(lm_path), mesh.num_vertices)
+    else:
+        print("no landmarks/landmarks.json yet: detecting them (t2bs landmarks DIR --show to check)")
+        lm = compute_landmarks(project_dir)
+    out = Path(out) if out is not None else project.path("retarget", driver.stem)
+    frames, fps = read_driver(driver, max_frames)
+    bar = tqdm(total=len(frames), desc="tracking face", unit="frame")
+    track = track_face(frames, fps, TrackConfig(smooth_sigma=smooth, neutral_frame=neutral_frame,
+                                                 static=driver.is_dir()), progress=lambda d, n: bar.update(d - bar.n))
+    bar.close()
+    if track.report["missing"]:
+        print(f"warning: no face in {track.report['missing']} of {len(frames)} frames "
+              f"(runs {track.report['missing_runs']}); interpolated between tracked frames")
+    positions = model.neutral[lm.vertex_ids].astype(np.float64)
+    tr = transfer_motion(track, positions, mouth_width=lm.regions.get("mouth", {}).get("width_world"))
+    solver = RetargetSolver(model.neutral, model.basis, mesh.faces, lm.vertex_ids, lm.eyeballs)
+    bar = tqdm(total=len(frames), desc="solving weights", unit="frame")
+    weights = solver.solve(tr.targets, tr.eye_openness, progress=lambda d, n: bar.update(d - bar.n))
+    bar.close()
+    out.mkdir(parents=True, exist_ok=True)
+    times = np.arange(len(frames)) / fps
+    with open(out / "weights.csv", "w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow(["frame", "time"] + list(model.names))
+        for t in range(len(frames)):
+            wr.writerow([t, f"{times[t]:.4f}"] + [f"{x:.6f}" for x in weights[t]])
+    rig = mesh.with_vertices(model.neutral)
+    rig.morph_targets = {n: model.basis[k].astype(np.float32) for k, n in enumerate(model.names)}
+    save_mesh(rig, out / "animation.glb", animation={"times": times.astype(np.float32), "weights": weights.astype(np.float32),
+                                                       "name": f"retarget:{driver.name}"})
+    import imageio.v2 as imageio
+
+    cam = frontal_camera(size)
+    verts = model.vertices(weights)
+    with MeshRenderer() as renderer, imageio.get_writer(out / "preview.mp4", fps=fps, macro_block_size=1) as writer:
+        for t in tqdm(range(len(frames)), desc="preview", unit="frame"):
+            char = (renderer.render(rig, cam, vertices=verts[t]).rgb * 255 + 0.5).astype(np.uint8)
+            writer.append_data(_side_by_side(frames[t], char))
+    write_json(out / "report.json", {"driver": str(driver), "frames": len(frames), "fps": fps, "tracking": track.report,
+                                     "landmarks_backend": lm.backend, "scales": tr.scales,
+                                     "seconds": round(time.perf_counter() - t0, 2)})
+    project.record_stage("retarget", backend="mediapipe-0.10.21", config={"driver": str(driver), "smooth": smooth,
+                                                                          "neutral_frame": track.neutral})
+    print(f"retargeted {len(frames)} frames -> {out}/weights.csv, animation.glb, preview.mp4")
+
+
+def bench_retarget(
+    target: list[str] = typer.Option(["../shared/assets/turtle.glb"], "--target",
+                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable"),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="also write the result to this JSON file"),
+    frames: int = typer.Option(96, "--frames", help="driver frames"),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions."""
+    from t2bs.retarget.bench import run_bench
+
+    result = run_bench(list(target), frames=frames, seed=seed)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if json_path is not None:
+        write_json(json_path, result)

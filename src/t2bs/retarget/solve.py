@@ -1,0 +1,158 @@
+"""Per-frame blendshape weights (paper §4.3): landmark distance 1.0 + ARAP 0.1 + eye terms.
+
+The model is linear, ``v(w) = neutral + sum_k w_k B_k``, so every term is solved in closed form:
+
+- Landmarks (weight 1.0): mean over the 20 landmarks of the squared distance between their X, Y
+  (frontal image plane) and the transferred targets; linear in w. Z is not constrained (a frontal
+  video does not observe it; ARAP and the basis decide it).
+- ARAP (weight 0.1): mean over mesh edges of ``|(v_i - v_j) - R_ij (n_i - n_j)|^2`` with
+  ``R_ij = (R_i + R_j) / 2`` the local rotations. Solved the standard local/global way: the local
+  step fits each vertex's rotation to the current pose (batched 3x3 SVD), the global step is then a
+  K x K linear system because v is linear in w. The quadratic part ``(DB)^T (DB)`` is precomputed once.
+- Eye terms: (a) lid gap: per eye, the mean vertical gap between upper- and lower-lid landmarks
+  equals the neutral gap times the transferred openness (0 when the human's eye is shut, so the
+  lids close fully); (b) depth (the paper's L_Depth): eyeball vertices may not move towards the
+  camera more than their lids do (hinge, handled as an active set: solve, add the violated
+  vertices as quadratic penalties, solve again).
+- A tiny ridge keeps components that neither landmarks nor ARAP see at zero.
+
+Warm start: each frame starts its ARAP rotations and eye active set from the previous frame's
+solution, so one or two local/global rounds suffice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from t2bs.retarget.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
+
+
+@dataclass
+class SolveConfig:
+    landmark_weight: float = 1.0  # paper: 1.0 (mean squared landmark distance, world units)
+    arap_weight: float = 0.1  # paper: 0.1 (mean squared ARAP edge residual)
+    eye_gap_weight: float = 1.0  # lid-gap term per eye (squared gap error)
+    eye_depth_weight: float = 1.0  # eyeball-behind-lids hinge
+    ridge: float = 1e-7  # Tikhonov on the weights, relative to the largest diagonal entry
+    iterations: int = 2  # ARAP local/global rounds per frame (warm-started)
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges [E, 2] of a triangle mesh."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    return np.unique(e, axis=0)
+
+
+class RetargetSolver:
+    """Precomputed linear pieces of the objective for one model + landmark set (state: caches)."""
+
+    def __init__(self, neutral: np.ndarray, basis: np.ndarray, faces: np.ndarray, landmark_ids: np.ndarray,
+                 eyeballs: dict | None = None, config: SolveConfig = SolveConfig()):
+        self.config = config
+        self.neutral = np.asarray(neutral, np.float64)  # [N, 3]
+        self.basis = np.asarray(basis, np.float64)  # [K, N, 3]
+        self.k = self.basis.shape[0]
+        self.ids = np.asarray(landmark_ids, int)  # [20]
+        self.edges = mesh_edges(np.asarray(faces, int))  # [E, 2]
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        self.e0 = self.neutral[i] - self.neutral[j]  # [E, 3] rest edges
+        # [K, 3E] edge vectors of each basis shape; ARAP quadratic form (mean over edges).
+        self.db = (self.basis[:, i] - self.basis[:, j]).reshape(self.k, -1)
+        n_e = len(self.edges)
+        self.h_arap = self.db @ self.db.T / n_e
+        # Landmark rows: X, Y of the 20 landmark vertices, [40, K].
+        self.a_lm = self.basis[:, self.ids, :2].reshape(self.k, -1).T
+        self.h_lm = self.a_lm.T @ self.a_lm / len(self.ids)
+        # Lid gaps: per eye the mean (upper Y - lower Y) over its two lid pairs, [2, K] (right, left).
+        self.a_gap = np.zeros((2, self.k))
+        self.gap0 = np.zeros(2)
+        for r, (eye, base) in enumerate((("right", RIGHT_EYE[0]), ("left", LEFT_EYE[0]))):
+            for up, lo in EYE_LID_PAIRS[eye]:
+                vu, vl = self.ids[up], self.ids[lo]
+                self.a_gap[r] += (self.basis[:, vu, 1] - self.basis[:, vl, 1]) / 2
+                self.gap0[r] += (self.neutral[vu, 1] - self.neutral[vl, 1]) / 2
+        # Eyeball depth hinge rows: dz(eyeball vertex) - mean dz(lid landmarks of that eye), [M, K].
+        rows = []
+        for eye, idx in (("right", RIGHT_EYE), ("left", LEFT_EYE)):
+            ball = np.asarray((eyeballs or {}).get(eye, []), int)
+            ball = ball[~np.isin(ball, self.ids)]
+            if len(ball):
+                lid = self.basis[:, self.ids[idx], 2].mean(1)  # [K]
+                rows.append(self.basis[:, ball, 2].T - lid[None, :])
+        self.a_depth = np.concatenate(rows) if rows else np.zeros((0, self.k))
+        self._active = np.zeros(len(self.a_depth), bool)
+        self._w = np.zeros(self.k)
+
+    def reset(self) -> None:
+        self._active[:] = False
+        self._w = np.zeros(self.k)
+
+    def _rotations(self, w: np.ndarray) -> np.ndarray:
+        """Local step: per-vertex best rotation [N, 3, 3] from rest edges to the edges of pose w."""
+        v = self.neutral + np.tensordot(w, self.basis, axes=1)
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        e = v[i] - v[j]
+        cov = np.einsum("ea,eb->eab", self.e0, e)  # [E, 3, 3]
+        s = np.zeros((len(v), 3, 3))
+        np.add.at(s, i, cov)
+        np.add.at(s, j, cov)
+        u, _, vt = np.linalg.svd(s)
+        r = np.einsum("nba,ncb->nac", vt, u)  # V U^T
+        det = np.linalg.det(r)
+        fix = det < 0
+        if fix.any():
+            u2 = u[fix].copy()
+            u2[:, :, 2] *= -1
+            r[fix] = np.einsum("nba,ncb->nac", vt[fix], u2)
+        return r
+
+    def solve_frame(self, targets_xy: np.ndarray, eye_openness: np.ndarray | None = None) -> np.ndarray:
+        """Weights [K] for landmark targets [20, 2] (world X, Y) and eye openness [2] (right, left)."""
+        c = self.config
+        b_lm = (np.asarray(targets_xy, np.float64) - self.neutral[self.ids, :2]).reshape(-1)
+        h = c.landmark_weight * self.h_lm + c.arap_weight * self.h_arap
+        g = c.landmark_weight * self.a_lm.T @ b_lm / len(self.ids)
+        if eye_openness is not None and c.eye_gap_weight > 0:
+            target_gap = self.gap0 * np.asarray(eye_openness, np.float64)
+            h = h + c.eye_gap_weight * self.a_gap.T @ self.a_gap
+            g = g + c.eye_gap_weight * self.a_gap.T @ (target_gap - self.gap0)
+        ridge = c.ridge * max(float(np.abs(np.diag(h)).max()), 1e-12) * np.eye(self.k)
+        w = self._w
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        n_e = len(self.edges)
+        for _ in range(max(1, c.iterations)):
+            g_arap = 0.0
+            if c.arap_weight > 0:
+                rot = self._rotations(w)
+                rij = 0.5 * (rot[i] + rot[j])  # [E, 3, 3]
+                resid = np.einsum("eab,eb->ea", rij, self.e0) - self.e0  # target edge change [E, 3]
+                g_arap = c.arap_weight * self.db @ resid.reshape(-1) / n_e
+            for _round in range(3):  # eye-depth active set
+                hd = h + ridge
+                if self._active.any() and c.eye_depth_weight > 0:
+                    a = self.a_depth[self._active]
+                    hd = hd + c.eye_depth_weight * a.T @ a / max(len(self.a_depth), 1)
+                w = np.linalg.solve(hd, g + g_arap)
+                if len(self.a_depth) == 0 or c.eye_depth_weight <= 0:
+                    break
+                viol = self.a_depth @ w > 0
+                if not (viol & ~self._active).any():
+                    break
+                self._active |= viol
+        if len(self.a_depth):
+            self._active = self.a_depth @ w > -1e-9  # keep what binds for the next frame (warm start)
+        self._w = w
+        return w
+
+    def solve(self, targets: np.ndarray, eye_openness: np.ndarray | None = None, progress=None) -> np.ndarray:
+        """Weights [T, K] for targets [T, 20, 2] (each frame warm-started from the previous)."""
+        self.reset()
+        out = np.zeros((len(targets), self.k))
+        for t in range(len(targets)):
+            out[t] = self.solve_frame(targets[t], None if eye_openness is None else eye_openness[t])
+            if progress is not None:
+                progress(t + 1, len(targets))
+        return out

@@ -1,0 +1,1 @@
+"""Web viewer (viser): `t2bs view DIR`. Importing this package does not import viser."""

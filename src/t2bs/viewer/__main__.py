@@ -1,0 +1,3 @@
+from t2bs.viewer.commands import main
+
+main()

@@ -1,0 +1,784 @@
+"""The web viewer (issue 10): a viser server that shows a project's character and what was made from it.
+
+What a user opens first after a run: the character (vertex colours; Gaussian splats as an option),
+one slider per blendshape (PCA components and named semantic shapes of ``blendshapes/model.npz``;
+the character's own rig morph targets when no model was built yet), a reset button, a capture
+picker that plays a reconstructed expression (``recon/<video_id>/vertices.npy``) next to its input
+frames (the canonical view of ``videos/<video_id>/``), and playback of a retargeting result
+(``retarget/<name>/weights.csv``). The camera starts at the frontal view of the pipeline's renders.
+
+Why the mesh is re-sent as a small GLB on every change: viser's simple mesh node has one colour per
+mesh, and vertex colours (the character's texture sampled per vertex) only reach three.js through a
+glTF ``COLOR_0`` attribute. Changes are coalesced by one worker thread (latest state wins), so a
+dragged slider never queues more frames than the client can draw.
+
+Python API (used by the tests and scripts)::
+
+    app = ViewerApp("fox/", port=0)          # port 0: any free port; app.url says which
+    app.set_weights({"pc000": 0.3})          # waits until the new mesh was queued to the clients
+    app.show_capture("smile-s0", frame=5)
+    app.show_retarget("face", frame=10)
+    app.stop()
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import struct
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from t2bs.errors import UserError
+from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
+from t2bs.geometry.mesh import Mesh, vertex_normals
+
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
+FRAME_COLUMNS = ("frame", "index", "frame_index")  # weights.csv: row index, ignored for timing
+DEFAULT_CAPTURE_FPS = 8.0  # when a capture's grid is missing (the quick pipeline's videos run at 8 fps)
+DEFAULT_RETARGET_FPS = 30.0  # when weights.csv has no time column
+MESH_NODE = "/character/mesh"
+SPLAT_NODE = "/character/splats"
+
+
+# ----------------------------------------------------------------------------------- project data
+
+
+@dataclass
+class Shape:
+    """One slider: vertex offsets at value 1, and the slider's range."""
+
+    name: str  # unique key used by set_weights (PCA "pc000", semantic "jaw_open", rig "rig:smile")
+    group: str  # "semantic" | "pca" | "rig": the GUI folder it lives in
+    offsets: np.ndarray  # [N, 3] float32 displacement per unit of the slider
+    lo: float  # slider minimum
+    hi: float  # slider maximum
+
+
+@dataclass
+class Capture:
+    video_id: str
+    vertices: np.ndarray  # [T, N, 3] float32 reconstructed vertices (canonical view frame)
+    frames: np.ndarray | None  # [T', H, W, 3] uint8 canonical-view input frames, None if no grid
+    times: np.ndarray  # [T] float seconds of each reconstructed frame
+    note: str = ""  # why frames are missing or do not line up, shown under the image
+
+
+@dataclass
+class Retarget:
+    name: str
+    times: np.ndarray  # [T] float seconds
+    weights: np.ndarray  # [T, M] slider values per frame, columns = shape_idx
+    shape_idx: np.ndarray  # [M] int index into the viewer's shapes for each weight column
+    ignored: list[str] = field(default_factory=list)  # csv columns that name no shape
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """glTF vertex colours are linear; the mesh stores display (sRGB) colours."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def load_character(root: Path) -> Mesh:
+    """The mesh to show: character/mesh.glb, else the blendshape model's glb (same topology)."""
+    from t2bs.geometry.io import load_mesh
+
+    for rel in (("character", "mesh.glb"), ("blendshapes", "model.glb")):
+        path = root.joinpath(*rel)
+        if path.exists():
+            return load_mesh(path)
+    raise UserError(f"{root}: nothing to view (no character/mesh.glb or blendshapes/model.glb); run `t2bs create` or `t2bs render` first")
+
+
+def _pca_range(basis_k: np.ndarray, capture_w: np.ndarray | None, diag: float) -> float:
+    """Half-range of a PCA slider: 1.25x the largest weight seen in the captures, else the weight
+    that moves some vertex by 10 % of the bounding-box diagonal (rows are unit-norm over 3N)."""
+    if capture_w is not None and capture_w.size and np.isfinite(capture_w).all() and np.abs(capture_w).max() > 0:
+        return float(1.25 * np.abs(capture_w).max())
+    peak = float(np.linalg.norm(basis_k, axis=1).max())
+    return float(0.1 * diag / peak) if peak > 0 else 1.0
+
+
+def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
+    """(neutral [N, 3], sliders, description) from blendshapes/model.npz, else the mesh's rig."""
+    n = mesh.num_vertices
+    diag = max(mesh.bbox_diagonal(), 1e-6)
+    path = root / "blendshapes" / "model.npz"
+    if not path.exists():
+        shapes = [Shape(f"rig:{k}", "rig", np.asarray(d, np.float32), 0.0, 1.0) for k, d in mesh.morph_targets.items()]
+        what = f"no blendshape model yet; {len(shapes)} rig morph targets of the character"
+        return mesh.vertices.astype(np.float32), shapes, what
+    from t2bs.blendshapes.model import load_model
+
+    model = load_model(path)
+    if model.num_vertices != n:
+        raise UserError(f"{path}: model has {model.num_vertices} vertices but the character mesh has {n}")
+    shapes: list[Shape] = []
+    # Named shapes first (what a user reaches for), read defensively: older files may carry only
+    # the offsets, or nothing.
+    sem_names = list(model.semantic_names)
+    sem_off = model.semantic_offsets() if model.semantic_weights is not None else None
+    if sem_names and (sem_off is None or sem_off.shape[0] != len(sem_names)):
+        with np.load(path, allow_pickle=False) as z:
+            raw = z["semantic_offsets"] if "semantic_offsets" in z.files else None
+        sem_off = raw if raw is not None and raw.shape == (len(sem_names), n, 3) else None
+    if sem_names and sem_off is not None:
+        for name, off in zip(sem_names, sem_off):
+            shapes.append(Shape(str(name), "semantic", np.asarray(off, np.float32), 0.0, 1.0))
+    allw = np.concatenate(list(model.capture_weights.values())) if model.capture_weights else None  # [M, K]
+    for k, name in enumerate(model.names):
+        r = _pca_range(model.basis[k], None if allw is None or allw.shape[1] != model.num_components else allw[:, k], diag)
+        shapes.append(Shape(str(name), "pca", model.basis[k].astype(np.float32), -r, r))
+    names = [s.name for s in shapes]
+    if len(set(names)) != len(names):
+        dup = sorted({x for x in names if names.count(x) > 1})
+        raise UserError(f"{path}: blendshape names are not unique ({', '.join(dup)})")
+    what = f"{model.num_components} PCA components, {len([s for s in shapes if s.group == 'semantic'])} named shapes"
+    return model.neutral.astype(np.float32), shapes, what
+
+
+def list_captures(root: Path) -> list[str]:
+    d = root / "recon"
+    return sorted(p.parent.name for p in d.glob("*/vertices.npy")) if d.is_dir() else []
+
+
+def list_retargets(root: Path) -> list[str]:
+    d = root / "retarget"
+    return sorted(p.parent.name for p in d.glob("*/weights.csv")) if d.is_dir() else []
+
+
+def load_capture(root: Path, video_id: str, n: int) -> Capture:
+    """Reconstructed vertices of one capture and the canonical view of its input grid."""
+    vpath = root / "recon" / video_id / "vertices.npy"
+    try:
+        verts = np.load(vpath, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{vpath}: unreadable ({exc})") from None
+    if verts.ndim != 3 or verts.shape[1:] != (n, 3) or verts.shape[0] == 0:
+        raise UserError(f"{vpath}: vertices {verts.shape} do not match the character [T, {n}, 3]")
+    if not np.isfinite(verts).all():
+        raise UserError(f"{vpath}: vertices contain NaN or infinite values")
+    t = verts.shape[0]
+    frames, note = None, ""
+    times = np.arange(t) / DEFAULT_CAPTURE_FPS
+    gdir = root / "videos" / video_id
+    if (gdir / "grid.json").exists():
+        from t2bs.video.grid import load_grid, read_rgb, read_video
+
+        grid = load_grid(gdir, load_frames=False)  # cameras and times only; one view is read below
+        fdir = gdir / "frames"
+        cv = grid.canonical_view
+        if (fdir / f"view{cv:02d}.mp4").exists():
+            frames = read_video(fdir / f"view{cv:02d}.mp4")
+        else:
+            frames = np.stack([read_rgb(fdir / f"view{cv:02d}" / f"{i:04d}.png") for i in range(grid.num_frames)])
+        if grid.num_frames == t:
+            times = np.asarray(grid.times, np.float64)
+        else:
+            note = f"the grid has {grid.num_frames} frames, the reconstruction {t}: frames shown by index"
+    else:
+        note = f"no input grid at videos/{video_id}/"
+    return Capture(video_id, verts.astype(np.float32), frames, times, note)
+
+
+def load_retarget(root: Path, name: str, shapes: list[Shape]) -> Retarget:
+    """weights.csv: a header row naming shapes (PCA names, semantic names, or rig names with or
+    without the ``rig:`` prefix), an optional time column in seconds, one row per frame."""
+    path = root / "retarget" / name / "weights.csv"
+    try:
+        with open(path, newline="") as f:
+            rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: unreadable ({exc})") from None
+    if len(rows) < 2:
+        raise UserError(f"{path}: needs a header row and at least one frame")
+    header = [h.strip() for h in rows[0]]
+    try:
+        data = np.array([[float(c) for c in r] for r in rows[1:]], dtype=np.float64)
+    except ValueError as exc:
+        raise UserError(f"{path}: non-numeric value ({exc})") from None
+    if data.ndim != 2 or data.shape[1] != len(header):
+        raise UserError(f"{path}: rows do not all have {len(header)} columns like the header")
+    if not np.isfinite(data).all():
+        raise UserError(f"{path}: NaN or infinite weights")
+    index = {s.name: i for i, s in enumerate(shapes)}
+    index.update({s.name[4:]: i for i, s in enumerate(shapes) if s.name.startswith("rig:") and s.name[4:] not in index})
+    times = None
+    cols, idx, ignored = [], [], []
+    for j, h in enumerate(header):
+        key = h.lower()
+        if key in TIME_COLUMNS and times is None:
+            times = data[:, j]
+        elif key in FRAME_COLUMNS:
+            continue
+        elif h in index:
+            cols.append(j)
+            idx.append(index[h])
+        else:
+            ignored.append(h)
+    if not cols:
+        raise UserError(f"{path}: no column names a blendshape of this viewer (have {', '.join(header[:6])}...)")
+    if times is None:
+        times = np.arange(data.shape[0]) / DEFAULT_RETARGET_FPS
+    if data.shape[0] > 1 and np.any(np.diff(times) <= 0):
+        raise UserError(f"{path}: times must increase")
+    return Retarget(name, times, data[:, cols], np.asarray(idx), ignored)
+
+
+# ------------------------------------------------------------------------------------ geometry
+
+
+def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray) -> bytes:
+    """A one-primitive binary glTF: POSITION, NORMAL, COLOR_0 (linear RGB float) and u32 indices."""
+    v = np.ascontiguousarray(vertices, np.float32)  # [N, 3]
+    nrm = np.ascontiguousarray(vertex_normals(v, faces), np.float32)  # [N, 3]
+    col = np.ascontiguousarray(colors_linear, np.float32)  # [N, 3]
+    idx = np.ascontiguousarray(faces, np.uint32).reshape(-1)  # [3F]
+    blobs = [v.tobytes(), nrm.tobytes(), col.tobytes(), idx.tobytes()]  # every length is a multiple of 4
+    offsets = np.cumsum([0] + [len(b) for b in blobs])
+    n = v.shape[0]
+    views = [{"buffer": 0, "byteOffset": int(offsets[i]), "byteLength": len(b), "target": 34962 if i < 3 else 34963}
+             for i, b in enumerate(blobs)]
+    accessors = [
+        {"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3", "min": v.min(0).tolist(), "max": v.max(0).tolist()},
+        {"bufferView": 1, "componentType": 5126, "count": n, "type": "VEC3"},
+        {"bufferView": 2, "componentType": 5126, "count": n, "type": "VEC3"},
+        {"bufferView": 3, "componentType": 5125, "count": int(idx.size), "type": "SCALAR"},
+    ]
+    gltf = {
+        "asset": {"version": "2.0", "generator": "t2bs viewer"},
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "character"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "material": 0}]}],
+        # Not metallic, fairly rough: a painted character, not chrome. Double-sided because
+        # generated characters often have open boundaries (mouth interior, eyelids).
+        "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": 0.75},
+                       "doubleSided": True}],
+        "buffers": [{"byteLength": int(offsets[-1])}], "bufferViews": views, "accessors": accessors,
+    }
+    js = json.dumps(gltf, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    binary = b"".join(blobs)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return b"".join([struct.pack("<III", 0x46546C67, 2, total), struct.pack("<II", len(js), 0x4E4F534A), js,
+                     struct.pack("<II", len(binary), 0x004E4942), binary])
+
+
+def vertex_splat_sigma(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[N] tangential std-dev of one Gaussian per vertex: half the mean incident edge length, so
+    neighbouring splats overlap into a closed surface."""
+    v = np.asarray(vertices, np.float64)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])  # [3F, 2]
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    total = np.bincount(e.ravel(), np.repeat(length, 2), minlength=len(v))
+    count = np.bincount(e.ravel(), minlength=len(v))
+    mean = total / np.maximum(count, 1)
+    fallback = np.median(mean[count > 0]) if (count > 0).any() else 0.01
+    return np.where(count > 0, 0.5 * mean, 0.5 * fallback)
+
+
+def splat_covariances(vertices: np.ndarray, faces: np.ndarray, sigma_t: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] flat disc Gaussians in the tangent plane: s_t^2 (I - n n^T) + s_n^2 n n^T, s_n = s_t / 10."""
+    n = vertex_normals(vertices, faces).astype(np.float64)  # [N, 3]
+    nn = n[:, :, None] * n[:, None, :]  # [N, 3, 3]
+    st2 = (sigma_t**2)[:, None, None]
+    return (st2 * (np.eye(3)[None] - nn) + 0.01 * st2 * nn).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------ app
+
+
+class ViewerApp:
+    """A running viewer for one project folder (state: the server, its GUI and the shown pose)."""
+
+    def __init__(self, project_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, splats: bool = False,
+                 verbose: bool = False):
+        try:
+            import viser
+        except ImportError:
+            raise UserError("the viewer needs viser: pip install 't2bs[viewer]' (or pip install viser)") from None
+        self.root = Path(project_dir)
+        if not self.root.is_dir():
+            raise UserError(f"{self.root}: no such project folder")
+        if not 0 <= int(port) <= 65535:
+            raise UserError(f"--port must be 0..65535, got {port}")
+        self.mesh = load_character(self.root)
+        self.neutral, self.shapes, self.shapes_info = load_shapes(self.root, self.mesh)
+        n = self.mesh.num_vertices
+        self.faces = self.mesh.faces.astype(np.int64)
+        self.colors = self.mesh.vertex_rgb().astype(np.float32)  # [N, 3] display colours
+        self._colors_linear = _srgb_to_linear(self.colors)
+        self._stack = (np.stack([s.offsets for s in self.shapes]).reshape(len(self.shapes), -1)
+                       if self.shapes else np.zeros((0, n * 3), np.float32))  # [M, 3N]
+        self._sigma = vertex_splat_sigma(self.neutral, self.faces)
+        self.capture_ids = list_captures(self.root)
+        self.retarget_names = list_retargets(self.root)
+        self._captures: dict[str, Capture] = {}
+        self._retargets: dict[str, Retarget] = {}
+
+        self._lock = threading.RLock()
+        self._values = np.zeros(len(self.shapes), np.float64)  # [M] slider values
+        self._mode: tuple = ("shapes",)  # ("shapes",) | ("capture", id, t) | ("retarget", name, t)
+        self._requested = 0  # version of the newest state
+        self._pushed = 0  # version of the newest state queued to the clients
+        self._pushed_cv = threading.Condition()
+        self._dirty = threading.Event()
+        self._stopping = threading.Event()
+        self._shown_vertices = self.neutral.copy()
+        self._bulk = False  # set while set_weights/reset move many sliders: one redraw at the end
+        self._play_start: dict[str, tuple[float, float]] = {}  # kind -> (wall clock, media time) at play
+
+        self.server = viser.ViserServer(host=host, port=int(port), label="t2bs", verbose=verbose)
+        try:
+            self._build_scene(splats)
+            self._build_gui(splats)
+        except BaseException:
+            self.server.stop()
+            raise
+        self._worker = threading.Thread(target=self._redraw_loop, name="t2bs-viewer-redraw", daemon=True)
+        self._player = threading.Thread(target=self._play_loop, name="t2bs-viewer-play", daemon=True)
+        self._worker.start()
+        self._player.start()
+        self._schedule()
+        self.wait_idle()
+
+    # ------------------------------------------------------------------------- public API
+
+    @property
+    def host(self) -> str:
+        return self.server.get_host()
+
+    @property
+    def port(self) -> int:
+        return int(self.server.get_port())
+
+    @property
+    def url(self) -> str:
+        host = self.host
+        host = "127.0.0.1" if host in ("0.0.0.0", "") else (f"[{host}]" if ":" in host else host)
+        return f"http://{host}:{self.port}"
+
+    @property
+    def shape_names(self) -> list[str]:
+        return [s.name for s in self.shapes]
+
+    @property
+    def weights(self) -> dict[str, float]:
+        with self._lock:
+            return {s.name: float(v) for s, v in zip(self.shapes, self._values)}
+
+    @property
+    def mode(self) -> tuple:
+        with self._lock:
+            return self._mode
+
+    def set_weights(self, weights: dict[str, float], wait: bool = True) -> None:
+        """Move sliders by name (values clamped to each slider's range); shows the blendshapes."""
+        index = {s.name: i for i, s in enumerate(self.shapes)}
+        unknown = [k for k in weights if k not in index]
+        if unknown:
+            raise UserError(f"unknown blendshape {unknown[0]!r}; have {', '.join(index) or 'none'}")
+        with self._lock:
+            self._bulk = True
+            try:
+                for k, v in weights.items():
+                    s = self.shapes[index[k]]
+                    self._sliders[index[k]].value = float(min(max(float(v), s.lo), s.hi))
+            finally:
+                self._bulk = False
+            self._show_shapes()
+        if wait:
+            self.wait_idle()
+
+    def reset(self, wait: bool = True) -> None:
+        """All sliders to 0 (the neutral character), playback stopped."""
+        self.set_weights({s.name: 0.0 for s in self.shapes}, wait=wait)
+
+    def show_capture(self, video_id: str, frame: int = 0, wait: bool = True) -> None:
+        if video_id not in self.capture_ids:
+            raise UserError(f"no reconstructed capture {video_id!r}; have {', '.join(self.capture_ids) or 'none'}")
+        self._capture_dd.value = video_id  # its callback loads the capture at frame 0 if it changed
+        self._set_capture(video_id, int(frame))
+        if wait:
+            self.wait_idle()
+
+    def show_retarget(self, name: str, frame: int = 0, wait: bool = True) -> None:
+        if name not in self.retarget_names:
+            raise UserError(f"no retargeting result {name!r}; have {', '.join(self.retarget_names) or 'none'}")
+        self._retarget_dd.value = name
+        self._set_retarget(name, int(frame))
+        if wait:
+            self.wait_idle()
+
+    def set_playing(self, kind: str, playing: bool) -> None:
+        """Start/stop playback of the selected capture ("capture") or retargeting ("retarget")."""
+        box = {"capture": self._capture_play, "retarget": self._retarget_play}.get(kind)
+        if box is None:
+            raise UserError(f"playback kind must be capture or retarget, got {kind!r}")
+        box.value = bool(playing)
+
+    def current_vertices(self) -> np.ndarray:
+        """[N, 3] the vertices the viewer shows (after wait_idle: what the clients were sent)."""
+        with self._lock:
+            return self._vertices_for(self._mode).copy()
+
+    def wait_idle(self, timeout: float = 10.0) -> None:
+        """Block until the newest state was queued to the clients."""
+        deadline = time.monotonic() + timeout
+        with self._pushed_cv:
+            while self._pushed < self._requested and not self._stopping.is_set():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError("viewer: redraw did not finish in time")
+                self._pushed_cv.wait(left)
+
+    def focus_frontal(self) -> None:
+        """Move every connected browser's camera to the frontal view."""
+        cam = frontal_camera()
+        for client in self.server.get_clients().values():
+            client.camera.up_direction = (0.0, 1.0, 0.0)
+            client.camera.position = tuple(cam.position)
+            client.camera.look_at = (0.0, 0.0, 0.0)
+            client.camera.fov = math.radians(ORBIT_FOV_Y)
+
+    def stop(self) -> None:
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        self._dirty.set()
+        with self._pushed_cv:
+            self._pushed_cv.notify_all()
+        for t in (getattr(self, "_worker", None), getattr(self, "_player", None)):
+            if t is not None and t.is_alive() and t is not threading.current_thread():
+                t.join(timeout=5.0)
+        self.server.stop()
+
+    def __enter__(self) -> "ViewerApp":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------------- scene / GUI
+
+    def _build_scene(self, splats: bool) -> None:
+        s = self.server
+        s.scene.set_up_direction("+y")  # the project's world is Y up
+        cam = frontal_camera()  # position (0, 0.39, 2.22) looking at the origin, fov 30
+        s.initial_camera.up = (0.0, 1.0, 0.0)
+        s.initial_camera.position = tuple(float(x) for x in cam.position)
+        s.initial_camera.look_at = (0.0, 0.0, 0.0)
+        s.initial_camera.fov = math.radians(ORBIT_FOV_Y)
+        s.initial_camera.near = 0.01
+        # Lights instead of viser's image-based environment: its prefiltering takes 15-20 s on a
+        # software WebGL (a headless browser, a remote desktop) before the first frame shows.
+        # A hemisphere fill plus a key light from the camera's upper left, fixed in the world.
+        s.scene.configure_environment_map(None)
+        s.scene.configure_default_lights(False)
+        s.scene.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(110, 100, 95), intensity=1.2)
+        s.scene.add_light_point("/lights/key", intensity=2.0, position=(0.9, 1.3, 2.4), decay=0.0)
+        self._mesh_handle = None
+        self._splat_handle = None
+        self._show_mesh = not splats
+        self._show_splats = splats
+
+    def _build_gui(self, splats: bool) -> None:
+        gui = self.server.gui
+        gui.add_markdown(f"**{self.root.name or self.root}** · {self.mesh.num_vertices} vertices · {self.shapes_info}")
+        self._status = gui.add_markdown("Showing: blendshapes")
+
+        with gui.add_folder("View"):
+            frontal = gui.add_button("Frontal view")
+            frontal.on_click(lambda _: self.focus_frontal())
+            mesh_box = gui.add_checkbox("Mesh", initial_value=not splats)
+            splat_box = gui.add_checkbox("Gaussian splats", initial_value=splats)
+            env_box = gui.add_checkbox("Environment light", initial_value=False,
+                                       hint="image-based lighting; slow to start without a GPU")
+
+            @env_box.on_update
+            def _(_event) -> None:
+                self.server.scene.configure_environment_map("studio" if env_box.value else None)
+
+            @mesh_box.on_update
+            def _(_event) -> None:
+                with self._lock:
+                    self._show_mesh = bool(mesh_box.value)
+                self._schedule()
+
+            @splat_box.on_update
+            def _(_event) -> None:
+                with self._lock:
+                    self._show_splats = bool(splat_box.value)
+                self._schedule()
+
+        with gui.add_folder("Captures"):
+            if not self.capture_ids:
+                gui.add_markdown("No reconstructed captures (recon/<video_id>/vertices.npy).")
+            self._capture_dd = gui.add_dropdown("Capture", ("(none)", *self.capture_ids), initial_value="(none)",
+                                                disabled=not self.capture_ids)
+            self._capture_frame = gui.add_slider("Capture frame", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self._capture_play = gui.add_checkbox("Play capture", initial_value=False, disabled=True)
+            self._capture_note = gui.add_markdown("")
+            self._capture_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)",
+                                                visible=False)
+
+            @self._capture_dd.on_update
+            def _(_event) -> None:
+                vid = self._capture_dd.value
+                if vid == "(none)":
+                    self._capture_play.value = False
+                    for h in (self._capture_frame, self._capture_play):
+                        h.disabled = True
+                    self._capture_image.visible = False
+                    with self._lock:
+                        if self._mode[0] == "capture":
+                            self._show_shapes()
+                    return
+                self._set_capture(vid, 0)
+
+            @self._capture_frame.on_update
+            def _(_event) -> None:
+                vid = self._capture_dd.value
+                if vid != "(none)":
+                    self._set_capture(vid, int(self._capture_frame.value))
+
+            @self._capture_play.on_update
+            def _(_event) -> None:
+                self._start_play("capture", self._capture_play.value)
+
+        with gui.add_folder("Retargeting"):
+            if not self.retarget_names:
+                gui.add_markdown("No retargeting results (retarget/<name>/weights.csv).")
+            self._retarget_dd = gui.add_dropdown("Result", ("(none)", *self.retarget_names), initial_value="(none)",
+                                                 disabled=not self.retarget_names)
+            self._retarget_frame = gui.add_slider("Retarget frame", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self._retarget_play = gui.add_checkbox("Play retargeting", initial_value=False, disabled=True)
+            self._retarget_note = gui.add_markdown("")
+
+            @self._retarget_dd.on_update
+            def _(_event) -> None:
+                name = self._retarget_dd.value
+                if name == "(none)":
+                    self._retarget_play.value = False
+                    for h in (self._retarget_frame, self._retarget_play):
+                        h.disabled = True
+                    with self._lock:
+                        if self._mode[0] == "retarget":
+                            self._show_shapes()
+                    return
+                self._set_retarget(name, 0)
+
+            @self._retarget_frame.on_update
+            def _(_event) -> None:
+                name = self._retarget_dd.value
+                if name != "(none)":
+                    self._set_retarget(name, int(self._retarget_frame.value))
+
+            @self._retarget_play.on_update
+            def _(_event) -> None:
+                self._start_play("retarget", self._retarget_play.value)
+
+        with gui.add_folder("Blendshapes"):
+            reset = gui.add_button("Reset")
+            reset.on_click(lambda _: self.reset(wait=False))
+            if not self.shapes:
+                gui.add_markdown("No blendshapes (run `t2bs blendshapes DIR`).")
+            self._sliders: list = [None] * len(self.shapes)  # slider i drives shape i
+            titles = {"semantic": "Named shapes", "pca": "PCA components", "rig": "Character rig"}
+            for group in ("semantic", "pca", "rig"):
+                members = [(i, s) for i, s in enumerate(self.shapes) if s.group == group]
+                if not members:
+                    continue
+                with gui.add_folder(titles[group], expand_by_default=group != "pca" or len(members) <= 12):
+                    for i, s in members:
+                        label = s.name[4:] if group == "rig" else s.name
+                        step = float(f"{(s.hi - s.lo) / 200:.2g}") or 1e-3
+                        h = gui.add_slider(label, min=s.lo, max=s.hi, step=step, initial_value=0.0)
+                        h.on_update(self._slider_callback(i))
+                        self._sliders[i] = h
+
+    def _slider_callback(self, i: int):
+        def cb(_event) -> None:
+            with self._lock:
+                self._values[i] = float(self._sliders[i].value)
+                if not self._bulk:
+                    self._show_shapes()
+
+        return cb
+
+    # ------------------------------------------------------------------------- state changes
+
+    def _show_shapes(self) -> None:
+        with self._lock:
+            if self._mode[0] != "shapes":
+                self._mode = ("shapes",)
+                self._capture_play.value = False
+                self._retarget_play.value = False
+            self._status.content = "Showing: blendshapes"
+        self._schedule()
+
+    def _capture(self, vid: str) -> Capture:
+        if vid not in self._captures:
+            self._captures[vid] = load_capture(self.root, vid, self.mesh.num_vertices)
+        return self._captures[vid]
+
+    def _retarget(self, name: str) -> Retarget:
+        if name not in self._retargets:
+            self._retargets[name] = load_retarget(self.root, name, self.shapes)
+        return self._retargets[name]
+
+    def _set_capture(self, vid: str, t: int) -> None:
+        try:
+            cap = self._capture(vid)
+        except UserError as exc:
+            self._capture_note.content = f"error: {exc}"
+            return
+        nt = cap.vertices.shape[0]
+        t = int(min(max(t, 0), nt - 1))
+        with self._lock:
+            self._capture_frame.max = max(nt - 1, 1)
+            self._capture_frame.disabled = nt < 2
+            self._capture_play.disabled = nt < 2
+            if self._capture_frame.value != t:
+                self._capture_frame.value = t  # re-enters here once with the same t
+            if cap.frames is not None:
+                self._capture_image.image = cap.frames[min(t, len(cap.frames) - 1)]
+                self._capture_image.visible = True
+            else:
+                self._capture_image.visible = False
+            self._capture_note.content = cap.note
+            if self._mode[0] == "retarget":
+                self._retarget_play.value = False
+            self._mode = ("capture", vid, t)
+            self._status.content = f"Showing: capture {vid}, frame {t + 1}/{nt} ({cap.times[t]:.2f} s)"
+        self._schedule()
+
+    def _set_retarget(self, name: str, t: int) -> None:
+        try:
+            rt = self._retarget(name)
+        except UserError as exc:
+            self._retarget_note.content = f"error: {exc}"
+            return
+        nt = rt.weights.shape[0]
+        t = int(min(max(t, 0), nt - 1))
+        with self._lock:
+            self._retarget_frame.max = max(nt - 1, 1)
+            self._retarget_frame.disabled = nt < 2
+            self._retarget_play.disabled = nt < 2
+            if self._retarget_frame.value != t:
+                self._retarget_frame.value = t
+            self._retarget_note.content = f"ignored columns: {', '.join(rt.ignored)}" if rt.ignored else ""
+            if self._mode[0] == "capture":
+                self._capture_play.value = False
+            self._mode = ("retarget", name, t)
+            self._status.content = f"Showing: retargeting {name}, frame {t + 1}/{nt} ({rt.times[t]:.2f} s)"
+        self._schedule()
+
+    def _vertices_for(self, mode: tuple) -> np.ndarray:
+        if mode[0] == "capture":
+            return self._captures[mode[1]].vertices[mode[2]]
+        if mode[0] == "retarget":
+            rt = self._retargets[mode[1]]
+            values = np.zeros(len(self.shapes), np.float64)
+            np.add.at(values, rt.shape_idx, rt.weights[mode[2]])
+        else:
+            values = self._values
+        if not len(values):
+            return self.neutral
+        return (self.neutral.astype(np.float64) + (values @ self._stack).reshape(-1, 3)).astype(np.float32)
+
+    # ------------------------------------------------------------------------- threads
+
+    def _schedule(self) -> None:
+        with self._pushed_cv:
+            self._requested += 1
+        self._dirty.set()
+
+    def _redraw_loop(self) -> None:
+        """Send the newest state; states requested while one is being sent collapse into one."""
+        while not self._stopping.is_set():
+            if not self._dirty.wait(timeout=0.2):
+                continue
+            self._dirty.clear()
+            with self._pushed_cv:
+                version = self._requested
+            with self._lock:
+                verts = self._vertices_for(self._mode).copy()
+                show_mesh, show_splats = self._show_mesh, self._show_splats
+            try:
+                self._push(verts, show_mesh, show_splats)
+            except Exception as exc:  # a closed server during shutdown; anything else is printed
+                if not self._stopping.is_set():
+                    print(f"t2bs viewer: redraw failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            with self._pushed_cv:
+                self._pushed = max(self._pushed, version)
+                self._pushed_cv.notify_all()
+
+    def _push(self, verts: np.ndarray, show_mesh: bool, show_splats: bool) -> None:
+        scene = self.server.scene
+        self._shown_vertices = verts
+        if show_mesh:
+            glb = mesh_glb(verts, self.faces, self._colors_linear)
+            if self._mesh_handle is None:
+                self._mesh_handle = scene.add_glb(MESH_NODE, glb, cast_shadow=False, receive_shadow=False)
+            else:
+                self._mesh_handle.glb_data = glb
+                self._mesh_handle.visible = True
+        elif self._mesh_handle is not None:
+            self._mesh_handle.visible = False
+        if show_splats:
+            # viser's splat node takes the whole buffer at once: re-adding replaces it.
+            cov = splat_covariances(verts, self.faces, self._sigma)
+            self._splat_handle = scene.add_gaussian_splats(SPLAT_NODE, centers=verts.astype(np.float32), covariances=cov,
+                                                           rgbs=self.colors, opacities=np.ones((len(verts), 1), np.float32))
+        elif self._splat_handle is not None:
+            self._splat_handle.remove()
+            self._splat_handle = None
+
+    def _start_play(self, kind: str, playing: bool) -> None:
+        with self._lock:
+            if not playing:
+                self._play_start.pop(kind, None)
+                return
+            if kind == "capture":
+                vid = self._capture_dd.value
+                if vid == "(none)" or vid not in self._captures:
+                    return
+                times, t = self._captures[vid].times, int(self._capture_frame.value)
+            else:
+                name = self._retarget_dd.value
+                if name == "(none)" or name not in self._retargets:
+                    return
+                times, t = self._retargets[name].times, int(self._retarget_frame.value)
+            self._play_start[kind] = (time.monotonic(), float(times[min(t, len(times) - 1)] - times[0]))
+
+    def _play_loop(self) -> None:
+        """Advance the playing timeline at real time (looping), ~30 updates per second."""
+        while not self._stopping.wait(1 / 30):
+            for kind in ("capture", "retarget"):
+                with self._lock:
+                    start = self._play_start.get(kind)
+                    if start is None:
+                        continue
+                    if kind == "capture":
+                        vid = self._capture_dd.value
+                        times = self._captures[vid].times if vid in self._captures else None
+                        slider = self._capture_frame
+                    else:
+                        name = self._retarget_dd.value
+                        times = self._retargets[name].times if name in self._retargets else None
+                        slider = self._retarget_frame
+                    if times is None or len(times) < 2:
+                        continue
+                    # One frame period past the last frame before looping, so the last frame shows.
+                    period = float(times[-1] - times[0]) + float(np.median(np.diff(times)))
+                    media = (start[1] + time.monotonic() - start[0]) % period
+                    t = int(np.searchsorted(times - times[0], media, side="right") - 1)
+                    if t != slider.value:
+                        slider.value = max(t, 0)

@@ -1,0 +1,61 @@
+"""`t2bs view DIR`: serve the project's web viewer until Ctrl-C (SIGINT) or SIGTERM."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import typer
+
+from t2bs.errors import UserError
+
+
+def view_command(
+    project_dir: Path = typer.Argument(..., help="Project folder (made by `t2bs create` or the stage commands)."),
+    port: int = typer.Option(8080, "--port", help="Port to serve on (0 = any free port; a busy port moves to the next free one)."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to bind. The default serves this machine only; "
+                             "0.0.0.0 exposes the viewer (no authentication) to the network."),
+    splats: bool = typer.Option(False, "--splats", help="Start with the character drawn as Gaussian splats instead of the mesh."),
+) -> None:
+    """Web page with the character, one slider per blendshape, captures and retargeting playback."""
+    from t2bs.viewer.app import LOOPBACK_HOSTS, ViewerApp
+
+    if not host.strip():
+        raise UserError("--host must not be empty")
+    if host not in LOOPBACK_HOSTS:
+        print(f"warning: serving on {host}: anyone who can reach this machine on that address can open the viewer "
+              "and read the project (no authentication)", file=sys.stderr, flush=True)
+    stop = threading.Event()
+
+    def _on_signal(signum, _frame) -> None:
+        stop.set()
+
+    # Installed before the server starts, so a signal during start-up still shuts it down cleanly.
+    previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    app = None
+    try:
+        app = ViewerApp(project_dir, host=host, port=port, splats=splats)
+        if port and app.port != port:
+            print(f"warning: port {port} is busy, using {app.port}", file=sys.stderr, flush=True)
+        print(f"t2bs viewer: {app.url}  (Ctrl-C to stop)", flush=True)
+        while not stop.wait(0.25):  # a timed wait lets the signal handler run promptly
+            pass
+    finally:
+        if app is not None:
+            app.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print("t2bs viewer: stopped", flush=True)
+
+
+def main() -> None:
+    """Entry point of `python -m t2bs.viewer` (same as `t2bs view`)."""
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    app.command()(view_command)
+    try:
+        app()
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
