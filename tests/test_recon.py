@@ -21,9 +21,9 @@ from t2bs.recon.losses import AlexLPIPS, PerceptualLoss, huber_pyramid, load_lpi
 from t2bs.video.grid import VideoGrid
 
 
-def sphere_mesh(subdivisions: int = 2) -> Mesh:
+def sphere_mesh(subdivisions: int = 2, axes=(1.0, 1.0, 1.0)) -> Mesh:
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.45)
-    v = np.asarray(s.vertices, np.float32)
+    v = (np.asarray(s.vertices) * np.asarray(axes)).astype(np.float32)
     # High-frequency colours give the photometric loss something to hold on to.
     col = 0.5 + 0.45 * np.sin(np.stack([7 * v[:, 0] + 2, 9 * v[:, 1] + 1, 8 * v[:, 2] + 3 * v[:, 0]], 1))
     return Mesh(v, np.asarray(s.faces, np.int32), vertex_colors=col.astype(np.float32))
@@ -140,7 +140,7 @@ def test_losses_dssim_default_and_lpips_weights(tmp_path):
 
 
 def test_global_stage_recovers_known_rigid_motion():
-    mesh = sphere_mesh(2)
+    mesh = sphere_mesh(2, axes=(1.0, 0.8, 0.6))  # an ellipsoid: its outline pins the rotation
     rv = np.array([0.0, 0.25, 0.1])  # about 15 degrees
     tr = np.array([0.03, -0.02, 0.0])
     rot = roma.rotvec_to_rotmat(torch.tensor(rv)).numpy()
@@ -152,11 +152,12 @@ def test_global_stage_recovers_known_rigid_motion():
 
     res = reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
     g = res.model.global_se3.shared.detach().numpy()  # [T, 6]
-    assert np.abs(g[0]).max() < 0.02
-    assert np.allclose(g[1, :3], rv, atol=0.03), g[1]
-    assert np.allclose(g[1, 3:], tr, atol=0.01), g[1]
+    assert np.abs(g[0]).max() == 0.0  # frame 0 is the rest pose (anchored)
+    r_err = roma.rotmat_geodesic_distance(roma.rotvec_to_rotmat(torch.tensor(g[1, :3], dtype=torch.float64)),
+                                          torch.tensor(rot))
+    assert float(r_err) < 0.04, g[1]
     err = np.linalg.norm(res.vertices - frames, axis=-1).mean() / mesh.bbox_diagonal()
-    assert err < 0.01
+    assert err < 0.01, err
 
 
 @pytest.mark.slow

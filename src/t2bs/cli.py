@@ -24,6 +24,12 @@ from t2bs.commands_render import render_command  # noqa: E402
 
 app.command("render")(render_command)
 # -- more stage commands are registered below, one line each --
+from t2bs.recon.commands import reconstruct_command  # noqa: E402
+
+app.command("reconstruct")(reconstruct_command)
+from t2bs.blendshapes import commands as _blendshapes  # noqa: E402
+
+app.command("blendshapes")(_blendshapes.blendshapes_command)
 from t2bs.retarget import commands as _retarget  # noqa: E402
 
 app.command("landmarks")(_retarget.landmarks_command)
@@ -34,7 +40,15 @@ app.command("view")(view_command)
 from t2bs.video.commands import videos_command  # noqa: E402
 
 app.command("videos")(videos_command)
+from t2bs.character import commands as _character  # noqa: E402
+
+app.command("character")(_character.character_command)
+app.command("gallery")(_character.gallery_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
+from t2bs.eval.bench_vcdgs import bench_vcdgs_command  # noqa: E402
+
+bench_app.command("vcdgs")(bench_vcdgs_command)
+bench_app.command("blendshapes")(_blendshapes.bench_blendshapes_command)
 bench_app.command("retarget")(_retarget.bench_retarget)
 
 

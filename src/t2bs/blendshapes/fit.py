@@ -37,8 +37,8 @@ from t2bs.blendshapes.model import BlendshapeModel
 class FitConfig:
     prior: float = 1e-4  # L2 prior on weights; with the full mesh every weight shrinks by 1 / (1 + prior)
     rgb_weight: float = 0.1  # lambda_rgb of the paper
-    rgb_steps: int = 20  # L-BFGS iterations of the colour refinement (0 = geometry only)
-    image_size: int = 128  # side of the splat images used in the colour term
+    rgb_steps: int = 10  # L-BFGS iterations of the colour refinement (0 = geometry only)
+    image_size: int = 96  # side of the splat images used in the colour term
     batch: int = 64  # frames per optimisation batch (memory bound)
     seed: int = 0  # reserved for stochastic variants; the fit itself is deterministic
 

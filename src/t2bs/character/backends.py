@@ -32,7 +32,7 @@ def default_checkpoint_dir() -> Path:
 
 def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint: Path | None = None,
              command: str | None = None, mesh_path: Path | None = None, steps: int = 64,
-             device: str | None = None, facing: str = "auto") -> GenerationResult:
+             device: str | None = None, facing: str = "auto", grid_size: int = 128) -> GenerationResult:
     """Run one backend; UserError for unknown backends or missing arguments."""
     if backend not in BACKENDS:
         raise UserError(f"unknown --backend {backend!r}; use one of {', '.join(BACKENDS)}")
@@ -41,7 +41,8 @@ def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint
             raise UserError("the prompt is empty; describe the character, e.g. \"a cartoon fox with big ears\"")
         return generate_procedural(prompt, seed)
     if backend == "diffusers":
-        return generate_shap_e(prompt, checkpoint or default_checkpoint_dir(), seed, steps=steps, device=device)
+        return generate_shap_e(prompt, checkpoint or default_checkpoint_dir(), seed, steps=steps, device=device,
+                               grid_size=grid_size)
     if backend == "command":
         if not command:
             raise UserError("--backend command needs --command, e.g. --command \"python run_trellis.py --prompt {prompt} --out {out}\"")
@@ -78,8 +79,13 @@ def load_shap_e(checkpoint: Path, device: str | None = None):
 
 
 def generate_shap_e(prompt: str, checkpoint: Path, seed: int = 0, steps: int = 64, guidance_scale: float = 15.0,
-                    device: str | None = None, pipe=None) -> GenerationResult:
-    """Text -> mesh with Shap-E (output_type="mesh"); colours from its per-vertex RGB channels."""
+                    device: str | None = None, pipe=None, grid_size: int = 128) -> GenerationResult:
+    """Text -> mesh with Shap-E; colours from its per-vertex RGB channels.
+
+    Same as ``pipe(prompt, output_type="mesh")`` (the prior's latents decoded by the pipeline's
+    own ``shap_e_renderer.decode_to_mesh``), with the marching-cubes ``grid_size`` exposed
+    (128 in the pipeline; smaller is faster and coarser).
+    """
     import torch
 
     start = time.perf_counter()
@@ -87,12 +93,15 @@ def generate_shap_e(prompt: str, checkpoint: Path, seed: int = 0, steps: int = 6
     dev = pipe.device
     generator = torch.Generator(device="cpu").manual_seed(int(seed))
     with torch.no_grad():
-        out = pipe(prompt, num_inference_steps=int(steps), guidance_scale=guidance_scale, generator=generator,
-                   output_type="mesh")
-    decoded = out.images[0]
+        latents = pipe(prompt, num_inference_steps=int(steps), guidance_scale=guidance_scale, generator=generator,
+                       output_type="latent").images  # [1, num_embeddings, embedding_dim]
+        try:
+            decoded = pipe.shap_e_renderer.decode_to_mesh(latents[0][None], dev, grid_size=int(grid_size))
+        except (ValueError, RuntimeError) as exc:  # marching cubes found no surface
+            raise UserError(f"Shap-E produced no surface ({str(exc).splitlines()[0]}); try another seed or prompt") from None
     mesh = shap_e_to_mesh(decoded)
     info = {"backend": "diffusers", "model": "ShapEPipeline", "checkpoint": str(checkpoint), "prompt": prompt,
-            "seed": int(seed), "steps": int(steps), "guidance_scale": guidance_scale, "device": str(dev),
+            "seed": int(seed), "steps": int(steps), "guidance_scale": guidance_scale, "grid_size": int(grid_size), "device": str(dev),
             "vertices": mesh.num_vertices, "faces": int(len(mesh.faces)), "seconds": round(time.perf_counter() - start, 3)}
     return GenerationResult(mesh, info, [])
 

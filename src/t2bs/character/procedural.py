@@ -261,7 +261,7 @@ def _face_morphs(p: CharacterParams, face: _Face, head: _Part, jaw: _Part) -> No
 
 def _build_teeth(p: CharacterParams, face: _Face, upper: np.ndarray, lower: np.ndarray, lip_r: float) -> list[_Part]:
     white = (0.97, 0.96, 0.9)
-    inset = 0.045 + lip_r * 0.6
+    inset = 0.02 + lip_r * 0.5  # just behind the lips, so an open mouth shows them
     comps = []  # (vertices, faces, moves_with_jaw)
 
     def inner(curve, lo, hi, count, y):
@@ -276,13 +276,13 @@ def _build_teeth(p: CharacterParams, face: _Face, upper: np.ndarray, lower: np.n
 
     y_m = face.y_mouth
     if p.teeth in ("flat", "fangs", "buck"):
-        for y, jawed, lo, hi in ((y_m - 0.008, False, 0.22, 0.78), (y_m - 0.06, True, 0.25, 0.75)):
+        for y, jawed, lo, hi in ((y_m - 0.035, False, 0.22, 0.78), (y_m - 0.035, True, 0.25, 0.75)):
             path = inner(upper if not jawed else lower, lo, hi, 15, y)
             rad = 0.032 * np.ones(len(path))
             rad[0] = rad[-1] = 0.012
             comps.append((*tube(path, rad, 10), jawed))
     if p.teeth == "fangs":
-        for pt in inner(upper, 0.3, 0.7, 2, y_m + 0.01):
+        for pt in inner(upper, 0.3, 0.7, 2, y_m - 0.02):
             path = np.stack([pt, pt + [0, -0.06, 0.0], pt + [0, -0.11, 0.01]])
             comps.append((*tube(path, np.array([0.03, 0.02, 0.003]), 8), False))
     if p.teeth == "buck":

@@ -28,6 +28,8 @@ class VCDGSConfig:
     num_control_points: int = 400  # k; the paper uses 2000
     knn: int = 10  # control points per Gaussian (paper: 10)
     control_neighbours: int = 6  # control-point neighbours used by the rigidity regulariser
+    anchor_first_frame: bool = True  # frame 0 is the static mesh (paper §3.1.2: the grid's first column is the
+    #   fixed-time render of the static asset), so the shared deformation of t = 0 is held at the identity
     # --- networks ---
     hidden: int = 128  # MLP width (Deform, Refine, per-Gaussian)
     depth: int = 4  # hidden layers
@@ -53,10 +55,10 @@ class VCDGSConfig:
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"
     lpips_weights: str = ""  # path to an lpips-style state dict (AlexNet features + lin layers), see losses.py
     # --- regularisers (documented in vcdgs.py) ---
-    rigidity_weight: float = 1.0  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
-    temporal_weight: float = 0.5  # adjacent frames' control-point motion is smooth
-    view_residual_weight: float = 1.0  # view-dependent part of the deformation stays small
-    refine_weight: float = 0.1  # RefineMLP offsets stay small (appearance only, not geometry)
+    rigidity_weight: float = 0.02  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
+    temporal_weight: float = 0.02  # adjacent frames' control-point motion is smooth
+    view_residual_weight: float = 0.05  # view-dependent part of the deformation stays small
+    refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
     # --- ablations ---
     method: str = "full"  # full | no_view | no_refine | no_lbs | no_global
     # --- misc ---

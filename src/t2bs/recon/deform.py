@@ -77,8 +77,9 @@ class DeformMLP(nn.Module):
     """
 
     def __init__(self, hidden: int, depth: int, pos_freqs: int, time_freqs: int, view_freqs: int,
-                 view_conditioned: bool, translation_scale: float = 0.1):
+                 view_conditioned: bool, translation_scale: float = 0.1, anchor_first_frame: bool = True):
         super().__init__()
+        self.anchor = anchor_first_frame  # shared(p, t) - shared(p, 0): frame 0 is exactly the rest pose
         self.pos_freqs, self.time_freqs, self.view_freqs = pos_freqs, time_freqs, view_freqs
         self.view_conditioned = view_conditioned
         self.translation_scale = translation_scale  # outputs are O(1); scene motion is O(0.1)
@@ -91,7 +92,11 @@ class DeformMLP(nn.Module):
         """pe [P, Dp] = fourier(points, pos_freqs); v, t [B] normalised to [-1, 1] and [0, 1];
         view_on [B] 0/1 -> (shared [B, P, 6], residual [B, P, 6]) as (rotvec, translation)."""
         te = fourier(t[:, None], self.time_freqs)  # [B, Dt]
-        shared = self.shared(pe, te) * self.scale
+        if self.anchor:
+            both = self.shared(pe, torch.cat([te, fourier(t.new_zeros(1, 1), self.time_freqs)]))
+            shared = (both[:-1] - both[-1:]) * self.scale
+        else:
+            shared = self.shared(pe, te) * self.scale
         if self.residual is None or not bool(view_on.any()):
             return shared, torch.zeros_like(shared)
         ve = fourier(v[:, None], self.view_freqs)
@@ -102,14 +107,17 @@ class DeformMLP(nn.Module):
 class GlobalSE3(nn.Module):
     """Global rigid motion per (v, t): a shared table per t plus a view residual table per (v, t)."""
 
-    def __init__(self, views: int, frames: int, view_conditioned: bool):
+    def __init__(self, views: int, frames: int, view_conditioned: bool, anchor_first_frame: bool = True):
         super().__init__()
+        self.anchor = anchor_first_frame  # the shared motion of frame 0 is the identity
         self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T, rotvec 3 + translation 3]
         self.residual = nn.Parameter(torch.zeros(views, frames, 6)) if view_conditioned else None
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, view_on: torch.Tensor):
         """-> (shared [B, 6], residual [B, 6])."""
         shared = self.shared[t_idx]
+        if self.anchor:
+            shared = shared * (t_idx != 0).to(shared.dtype)[:, None]
         if self.residual is None:
             return shared, torch.zeros_like(shared)
         return shared, self.residual[v_idx, t_idx] * view_on[:, None]
@@ -152,8 +160,9 @@ class VCDGSModel(nn.Module):
         self.register_buffer("weights", torch.as_tensor(weights, dtype=f32))  # [N, knn]
         self.views, self.frames, self.canonical_view = views, frames, canonical_view
         self.use_view, self.use_refine, self.use_lbs, self.use_global = cfg.use_view, cfg.use_refine, cfg.use_lbs, cfg.use_global
-        self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view)
-        self.global_se3 = GlobalSE3(views, frames, cfg.use_view) if cfg.use_global else None
+        self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view,
+                                anchor_first_frame=cfg.anchor_first_frame)
+        self.global_se3 = GlobalSE3(views, frames, cfg.use_view, cfg.anchor_first_frame) if cfg.use_global else None
         self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.pos_freqs, cfg.time_freqs,
                                 cfg.view_freqs) if cfg.use_refine else None
         # Fourier features of the fixed points, computed once (positions never change).

@@ -230,7 +230,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         out = model(v_idx, t_idx, refine=joint)
         r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
         terms = image_loss(r, images[v_idx, t_idx], None if masks is None else masks[v_idx, t_idx], perceptual, cfg)
-        img = sum(terms.values())
+        img = sum(terms.values()).detach()
         if joint:
             terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
         loss = sum(terms.values())
@@ -245,6 +245,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         if history["first_image_loss"] is None:
             history["first_image_loss"] = float(img)
         if step % 10 == 0 or step == cfg.iterations - 1:
+            history["terms"] = {k: round(float(v.detach()), 6) for k, v in terms.items()}
             history["step"].append(step)
             history["loss"].append(float(loss))
             history["image"].append(float(img))

@@ -111,34 +111,28 @@ def project_directions(offsets: np.ndarray, mesh: Mesh) -> dict[str, np.ndarray]
     return {n: coef[i] for i, n in enumerate(names)}
 
 
-def load_target(spec: str) -> tuple[str, Mesh, bool]:
+def load_target(spec: str, seed: int = 0) -> tuple[str, Mesh, bool]:
     """(label, canonical mesh, is_procedural) for a path or ``procedural:<prompt>``."""
     if spec.startswith("procedural"):
-        try:
-            from t2bs.character import procedural  # noqa: F401
-        except ImportError:
-            raise UserError("procedural characters (t2bs.character) are not available in this build") from None
-        prompt = spec.split(":", 1)[1] if ":" in spec else "a cartoon frog"
-        mesh = _procedural_mesh(prompt)
-        return f"procedural:{prompt}", mesh, True
+        prompt = spec.split(":", 1)[1].strip() if ":" in spec else ""
+        prompt = prompt or "a cartoon fox"
+        return f"procedural:{prompt}", procedural_mesh(prompt, seed), True
     from t2bs.commands_render import canonical_character
 
     path = Path(spec)
     if not path.exists():
-        raise UserError(f"target {path} does not exist")
+        raise UserError(f"target {path} does not exist (a mesh file, or procedural:<prompt>)")
     mesh, _ = canonical_character(path)
     return path.stem, mesh, False
 
 
-def _procedural_mesh(prompt: str) -> Mesh:
-    from t2bs.character import procedural
-
-    for fn in ("character_from_prompt", "build_character", "generate", "make_character"):
-        if hasattr(procedural, fn):
-            out = getattr(procedural, fn)(prompt)
-            mesh = out[0] if isinstance(out, tuple) else out
-            return normalize(mesh)[0] if abs(mesh.bbox_diagonal() - 1.2) > 1e-3 else mesh
-    raise UserError("t2bs.character.procedural has no character builder this benchmark knows")
+def procedural_mesh(prompt: str, seed: int = 0) -> Mesh:
+    """The procedural generator's canonical character (rig controls as morph targets, part labels)."""
+    try:
+        from t2bs.character.procedural import generate_procedural
+    except ImportError:
+        raise UserError("procedural characters (t2bs.character) are not available in this build") from None
+    return generate_procedural(prompt, seed).mesh
 
 
 def pearson(a: np.ndarray, b: np.ndarray) -> float:

@@ -64,6 +64,10 @@ class Region:
     vertices: np.ndarray  # [N, 3] mesh pose the image shows (neutral, or the open-mouth pose)
     lift: str = "outside"  # "outside": nearest visible vertex projecting outside the mask; "inside": inside it
     eyeball: np.ndarray | None = None  # [N] bool vertices of the eyeball behind this eye (eye regions only)
+    # Part-label refinements (parts backend): vertices each contour point may be lifted to, and for
+    # the mouth the image masks of the upper / lower lip, whose meeting line is the inner contour.
+    lift_vertices: list | None = None  # per contour point: [N] bool eligible vertices (None: any)
+    lips: tuple[np.ndarray, np.ndarray] | None = None  # ([H, W] upper-lip pixels, [H, W] lower-lip pixels)
 
 
 @dataclass
@@ -135,8 +139,12 @@ def contour_points(mask: np.ndarray, angles_deg) -> tuple[np.ndarray, dict]:
 
 
 def lift_points(points2d: np.ndarray, camera: Camera, vertices: np.ndarray, visible: np.ndarray, mask: np.ndarray,
-                lift: str = "outside") -> np.ndarray:
-    """Vertex ids [P]: nearest visible vertex (in the image) to each point, outside/inside ``mask``."""
+                lift: str = "outside", allowed: list | None = None) -> np.ndarray:
+    """Vertex ids [P]: nearest visible vertex (in the image) to each point, outside/inside ``mask``.
+
+    ``allowed``: per point an [N] bool of the vertices it may land on (e.g. the upper lip for the
+    upper inner-lip points); the outside/inside rule is then not applied to that point.
+    """
     uv, _ = camera.project(vertices.astype(np.float64))
     h, w = mask.shape
     ix = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
@@ -147,9 +155,41 @@ def lift_points(points2d: np.ndarray, camera: Camera, vertices: np.ndarray, visi
         eligible = visible
     if not eligible.any():
         raise UserError("no vertex of the character is visible from the frontal camera")
-    cand = np.nonzero(eligible)[0]
-    d = np.linalg.norm(uv[cand][None, :, :] - points2d[:, None, :], axis=-1)  # [P, C]
-    return cand[np.argmin(d, axis=1)]
+    out = np.zeros(len(points2d), int)
+    for k, p in enumerate(points2d):
+        el = eligible
+        if allowed is not None and allowed[k] is not None and (visible & allowed[k]).any():
+            el = visible & allowed[k]
+        cand = np.nonzero(el)[0]
+        out[k] = cand[np.argmin(np.linalg.norm(uv[cand] - p[None], axis=-1))]
+    return out
+
+
+def inner_lip_points(points2d: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """Mouth contour points [8, 2] (MOUTH_ANGLES) moved onto the inner lip contour.
+
+    The 68-scheme's 61-63 / 65-67 lie on the inner edges of the lips; with the lips labelled, the
+    inner edge in a pixel column is the lowest upper-lip pixel (61-63) or the highest lower-lip pixel
+    (65-67). Corners (60, 64) go to the lips' extreme columns, where they meet (on a curved lip
+    line that is not at the height of the region's centre). Columns with no lip pixel keep the
+    contour point.
+    """
+    out = points2d.copy()
+    w = upper.shape[1]
+    lips = upper | lower
+    ys, xs = np.nonzero(lips)
+    for k, ang in enumerate(MOUTH_ANGLES):
+        if ang in (0.0, 180.0):
+            if len(xs):
+                x = xs.min() if ang == 180.0 else xs.max()
+                out[k] = [x, ys[xs == x].mean()]
+            continue
+        x = int(np.clip(np.round(points2d[k, 0]), 0, w - 1))
+        col = upper[:, x] if ang > 0 else lower[:, x]
+        rows = np.nonzero(col)[0]
+        if len(rows):
+            out[k, 1] = rows.max() if ang > 0 else rows.min()
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -184,17 +224,35 @@ def regions_from_parts(mesh: Mesh, camera: Camera, renderer) -> dict[str, Region
         sel = [ids[n] for n in names if n in ids]
         return np.isin(parts, sel) if sel else np.zeros(parts.shape, bool)
 
+    def verts(*names):
+        present = [n for n in names if n in ids]
+        return mesh.part_mask(*present) if present else None
+
     regions: dict[str, Region] = {}
-    for region, part in (("right_eye", "eye_right"), ("left_eye", "eye_left")):
+    for region, part, side in (("right_eye", "eye_right", "right"), ("left_eye", "eye_left", "left")):
         m = pix(part)
         if m.sum() < 4:
             raise UserError(f"the character's {part} is not visible from the front; use --override JSON")
-        regions[region] = Region(largest_component(m), mesh.vertices, "outside", mesh.part_mask(part))
+        # The six eye points belong on the lid margin around the visible eyeball (what a blink moves),
+        # not on the eyeball's rim or the skin behind the lid: lift them to the eyelid part when labelled.
+        lid = verts(f"eyelid_{side}")
+        regions[region] = Region(largest_component(m), mesh.vertices, "outside", mesh.part_mask(part),
+                                 lift_vertices=None if lid is None else [lid] * len(EYE_ANGLES))
+    upper, lower = pix("lip_upper"), pix("lip_lower")
     inner = pix("mouth_interior", "teeth", "tongue")
-    if inner.sum() >= 12:
+    if upper.sum() >= 4 and lower.sum() >= 4:
+        # Lips labelled and seen: the mouth is lips + whatever shows between them; the points go on
+        # the inner lip contour (upper points on the upper lip, lower on the lower lip, corners on
+        # either), so mouth-open moves exactly the lower three and a smile the corners. A tiny
+        # patch of interior or teeth (fangs over a closed mouth) is not the mouth opening.
+        both_lips = verts("lip_upper", "lip_lower")
+        allowed = [both_lips if a in (0.0, 180.0) else verts("lip_upper" if a > 0 else "lip_lower") for a in MOUTH_ANGLES]
+        regions["mouth"] = Region(largest_component(upper | lower | inner), mesh.vertices, "inside",
+                                  lift_vertices=allowed, lips=(upper, lower))
+    elif inner.sum() >= 12:
         regions["mouth"] = Region(largest_component(inner), mesh.vertices, "outside")
     else:
-        lips = pix("lip_upper", "lip_lower")
+        lips = upper | lower
         if lips.sum() < 4:
             raise UserError("the character's mouth (lips or interior) is not visible from the front; use --override JSON")
         regions["mouth"] = Region(largest_component(lips), mesh.vertices, "inside")
@@ -398,8 +456,10 @@ def detect_landmarks(mesh: Mesh, backend: str = "auto", model=None, size: int = 
             reg = regions[name]
             angles = MOUTH_ANGLES if name == "mouth" else EYE_ANGLES
             p2, info[name] = contour_points(reg.mask, angles)
+            if reg.lips is not None:
+                p2 = inner_lip_points(p2, reg.lips[0] & reg.mask, reg.lips[1] & reg.mask)
             vis = renderer.vertex_visibility(mesh, camera, vertices=reg.vertices)
-            ids.append(lift_points(p2, camera, reg.vertices, vis, reg.mask, reg.lift))
+            ids.append(lift_points(p2, camera, reg.vertices, vis, reg.mask, reg.lift, reg.lift_vertices))
             pts.append(p2)
         eyeballs = {side: np.nonzero(regions[f"{side}_eye"].eyeball)[0] for side in ("left", "right")
                     if regions[f"{side}_eye"].eyeball is not None}

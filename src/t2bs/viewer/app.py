@@ -39,11 +39,11 @@ from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
 from t2bs.geometry.mesh import Mesh, vertex_normals
 
-LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
 FRAME_COLUMNS = ("frame", "index", "frame_index")  # weights.csv: row index, ignored for timing
 DEFAULT_CAPTURE_FPS = 8.0  # when a capture's grid is missing (the quick pipeline's videos run at 8 fps)
 DEFAULT_RETARGET_FPS = 30.0  # when weights.csv has no time column
+CAPTURE_CACHE = 4  # reconstructed captures kept in memory
 MESH_NODE = "/character/mesh"
 SPLAT_NODE = "/character/splats"
 
@@ -519,7 +519,7 @@ class ViewerApp:
 
         with gui.add_folder("Captures"):
             if not self.capture_ids:
-                gui.add_markdown("No reconstructed captures (recon/<video_id>/vertices.npy).")
+                gui.add_markdown("No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).")
             self._capture_dd = gui.add_dropdown("Capture", ("(none)", *self.capture_ids), initial_value="(none)",
                                                 disabled=not self.capture_ids)
             self._capture_frame = gui.add_slider("Capture frame", min=0, max=1, step=1, initial_value=0, disabled=True)
@@ -554,7 +554,7 @@ class ViewerApp:
 
         with gui.add_folder("Retargeting"):
             if not self.retarget_names:
-                gui.add_markdown("No retargeting results (retarget/<name>/weights.csv).")
+                gui.add_markdown("No retargeting results (`retarget/NAME/weights.csv`).")
             self._retarget_dd = gui.add_dropdown("Result", ("(none)", *self.retarget_names), initial_value="(none)",
                                                  disabled=not self.retarget_names)
             self._retarget_frame = gui.add_slider("Retarget frame", min=0, max=1, step=1, initial_value=0, disabled=True)
@@ -624,9 +624,18 @@ class ViewerApp:
         self._schedule()
 
     def _capture(self, vid: str) -> Capture:
-        if vid not in self._captures:
-            self._captures[vid] = load_capture(self.root, vid, self.mesh.num_vertices)
-        return self._captures[vid]
+        with self._lock:
+            if vid in self._captures:
+                self._captures[vid] = self._captures.pop(vid)  # most recently used last
+                return self._captures[vid]
+        cap = load_capture(self.root, vid, self.mesh.num_vertices)  # slow (PNG decoding): outside the lock
+        with self._lock:
+            self._captures[vid] = cap
+            # A character has ~60 captures of [49, N, 3]; keep a few, never the one on screen.
+            shown = self._mode[1] if self._mode[0] == "capture" else None
+            for old in [k for k in self._captures if k not in (vid, shown)][: max(len(self._captures) - CAPTURE_CACHE, 0)]:
+                del self._captures[old]
+        return cap
 
     def _retarget(self, name: str) -> Retarget:
         if name not in self._retargets:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import signal
 import sys
 import threading
@@ -12,6 +13,19 @@ import typer
 from t2bs.errors import UserError
 
 
+def exposure_warning(host: str) -> str | None:
+    """The warning printed when --host makes the viewer reachable from other machines (None: loopback)."""
+    if host.strip().lower() == "localhost":
+        return None
+    try:
+        if ipaddress.ip_address(host.strip().strip("[]")).is_loopback:
+            return None
+    except ValueError:  # a host name: it resolves to whatever the network says
+        pass
+    return (f"warning: serving on {host}: anyone who can reach this machine on that address can open the viewer "
+            "and read the project (no authentication)")
+
+
 def view_command(
     project_dir: Path = typer.Argument(..., help="Project folder (made by `t2bs create` or the stage commands)."),
     port: int = typer.Option(8080, "--port", help="Port to serve on (0 = any free port; a busy port moves to the next free one)."),
@@ -20,13 +34,13 @@ def view_command(
     splats: bool = typer.Option(False, "--splats", help="Start with the character drawn as Gaussian splats instead of the mesh."),
 ) -> None:
     """Web page with the character, one slider per blendshape, captures and retargeting playback."""
-    from t2bs.viewer.app import LOOPBACK_HOSTS, ViewerApp
+    from t2bs.viewer.app import ViewerApp
 
     if not host.strip():
         raise UserError("--host must not be empty")
-    if host not in LOOPBACK_HOSTS:
-        print(f"warning: serving on {host}: anyone who can reach this machine on that address can open the viewer "
-              "and read the project (no authentication)", file=sys.stderr, flush=True)
+    warning = exposure_warning(host)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     stop = threading.Event()
 
     def _on_signal(signum, _frame) -> None:

@@ -61,20 +61,28 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 
 
 def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01) -> Projected:
-    """EWA projection of Gaussians (already broadcast to [C, N, ...]) into C cameras."""
-    C, N = means.shape[:2]
-    R = viewmats[:, None, :3, :3]  # [C, 1, 3, 3]
+    """EWA projection of N Gaussians into C cameras.
+
+    means/quats/scales may be shared ([N, ...], or a stride-0 expand of it) or per camera
+    ([C, N, ...]); opacities/colors are [C, N(, 3)]. Written with element-wise ops on small
+    tensors (no batched 3x3 matmuls) because this runs thousands of times per fit.
+    """
+    C = viewmats.shape[0]
+
+    def shared(x):  # [C, N, ...] broadcast view of one set -> [N, ...] (compute once, not C times)
+        return x[0] if x.dim() == 3 and (x.shape[0] == 1 or x.stride(0) == 0) else x
+
+    means, quats, scales = shared(means), shared(quats), shared(scales)
+    N = means.shape[-2]
+    R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, None, :3, 3]  # [C, 1, 3]
-    p_cam = (R @ means[..., None])[..., 0] + t  # [C, N, 3]
+    p_cam = torch.matmul(means, R.transpose(-1, -2)) + t  # [C, N, 3]
     x, y, z = p_cam.unbind(-1)
     in_front = z > near
     # Safe depth for culled Gaussians so no inf/NaN leaks into the backward pass.
     zs = torch.where(in_front, z, torch.ones_like(z))
 
-    rot = quat_to_rotmat(quats)  # [C, N, 3, 3]
-    M = rot * scales[..., None, :]  # R S: [C, N, 3, 3]
-    cov_world = M @ M.transpose(-1, -2)
-    cov_cam = R @ cov_world @ R.transpose(-1, -2)  # [C, N, 3, 3]
+    M = quat_to_rotmat(quats) * scales[..., None, :]  # R S: [(C,) N, 3, 3]
 
     fx, fy = Ks[:, 0, 0][:, None], Ks[:, 1, 1][:, None]  # [C, 1]
     cx, cy = Ks[:, 0, 2][:, None], Ks[:, 1, 2][:, None]
@@ -83,19 +91,26 @@ def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, wid
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
     lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
     lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
-    tx = zs * torch.minimum(lim_xp, torch.maximum(-lim_xn, x / zs))
-    ty = zs * torch.minimum(lim_yp, torch.maximum(-lim_yn, y / zs))
-    zero = torch.zeros_like(zs)
-    J = torch.stack([fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)], -1).reshape(C, N, 2, 3)
-    cov2d = J @ cov_cam @ J.transpose(-1, -2)  # [C, N, 2, 2]
-    sa = cov2d[..., 0, 0] + LOWPASS
-    sb = cov2d[..., 0, 1]
-    sc = cov2d[..., 1, 1] + LOWPASS
+    inv_z = 1.0 / zs
+    u = torch.minimum(lim_xp, torch.maximum(-lim_xn, x * inv_z))  # clamped x / z
+    v = torch.minimum(lim_yp, torch.maximum(-lim_yn, y * inv_z))
+    # Rows of J W (Jacobian of the perspective map times the camera rotation), [C, N, 3]:
+    # J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]].
+    a0, a2 = (fx * inv_z)[..., None], (-fx * u * inv_z)[..., None]
+    b1, b2 = (fy * inv_z)[..., None], (-fy * v * inv_z)[..., None]
+    T0 = a0 * R[:, None, 0, :] + a2 * R[:, None, 2, :]
+    T1 = b1 * R[:, None, 1, :] + b2 * R[:, None, 2, :]
+    # (J W R S) rows: [C, N, 3]; cov2d = (J W M)(J W M)^T.
+    P0 = (T0[..., :, None] * M).sum(-2)
+    P1 = (T1[..., :, None] * M).sum(-2)
+    sa = (P0 * P0).sum(-1) + LOWPASS
+    sb = (P0 * P1).sum(-1)
+    sc = (P1 * P1).sum(-1) + LOWPASS
     det = sa * sc - sb * sb
     ok_det = det > 0
-    det_s = torch.where(ok_det, det, torch.ones_like(det))
-    conics = torch.stack([sc / det_s, -sb / det_s, sa / det_s], -1)  # [C, N, 3]
-    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)  # [C, N, 2]
+    inv_det = 1.0 / torch.where(ok_det, det, torch.ones_like(det))
+    conics = torch.stack([sc * inv_det, -sb * inv_det, sa * inv_det], -1)  # [C, N, 3]
+    means2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], -1)  # [C, N, 2]
 
     with torch.no_grad():
         o = opacities.detach()

@@ -1,0 +1,78 @@
+"""Evaluation metrics on inputs with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from t2bs.eval.bench_vcdgs import markdown, summarise
+from t2bs.geometry.mesh import vertex_normals
+from t2bs.eval.metrics import geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
+
+
+def cube():
+    b = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    return np.asarray(b.vertices, np.float32), np.asarray(b.faces, np.int32)
+
+
+def test_p2p_is_mean_distance_over_diagonal():
+    v, _ = cube()
+    diag = np.sqrt(3.0)
+    moved = v + np.array([0.1, 0.0, 0.0], np.float32)
+    assert p2p(moved[None], v[None]) == pytest.approx(0.1 / diag, rel=1e-6)
+    mask = np.zeros((1, len(v)), bool)
+    mask[0, :2] = True
+    half = v.copy()
+    half[:2] += [0.0, 0.3, 0.4]  # distance 0.5 on two vertices only
+    assert p2p(half[None], v[None], mask=mask) == pytest.approx(0.5 / diag, rel=1e-6)
+    assert p2p(half[None], v[None]) == pytest.approx(0.5 * 2 / len(v) / diag, rel=1e-6)
+
+
+def test_moving_mask_threshold():
+    v, _ = cube()
+    gt = np.stack([v, v + [0.004, 0, 0], v + [0.02, 0, 0]])  # 0.23 % and 1.2 % of the diagonal
+    m = moving_mask(gt, v)
+    assert not m[0].any() and not m[1].any() and m[2].all()
+
+
+def test_normal_consistency_known_rotation():
+    v, f = cube()
+    assert normal_consistency(v, v, f) == pytest.approx(0.0, abs=1e-6)
+    # Rotating the shape rotates every normal: NC = mean(1 - n . R n).
+    a = np.radians(60)
+    rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    n = vertex_normals(v, f)
+    assert normal_consistency(v @ rot.T, v, f) == pytest.approx(np.mean(1 - (n * (n @ rot.T)).sum(1)), abs=1e-5)
+    # Inside-out faces flip every normal: 1 - cos = 2.
+    assert normal_consistency(v, v, f[:, ::-1].copy()) == pytest.approx(0.0, abs=1e-6)
+    assert np.mean(1 - (vertex_normals(v, f[:, ::-1].copy()) * n).sum(1)) == pytest.approx(2.0, abs=1e-5)
+    # Translation and scale leave normals alone.
+    assert normal_consistency(v * 2 + 1, v, f) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_psnr_and_ssim_known_values():
+    rng = np.random.default_rng(0)
+    a = rng.random((2, 48, 48, 3)).astype(np.float32)
+    assert psnr(a, a) == float("inf")
+    b = np.clip(a + 0.1, 0, 1)
+    mse = np.mean((a - b) ** 2)
+    assert psnr(b, a) == pytest.approx(10 * np.log10(1 / mse), rel=1e-6)
+    assert psnr(np.full((4, 4), 0.5), np.full((4, 4), 0.6)) == pytest.approx(20.0, rel=1e-6)
+    assert ssim(a, a) == pytest.approx(1.0, abs=1e-5)
+    assert ssim(rng.random((2, 48, 48, 3)), a) < 0.2
+
+
+def test_geometry_metrics_and_summary_table():
+    v, f = cube()
+    gt = np.stack([v, v + [0.1, 0, 0]])
+    geo = geometry_metrics(gt, gt, v, f)
+    assert geo["p2p_all"] == 0 and geo["p2p_moving"] == 0 and geo["moving_fraction"] == pytest.approx(0.5)
+    static = geometry_metrics(np.stack([v, v]), gt, v, f)
+    assert static["p2p_moving"] == pytest.approx(0.1 / np.sqrt(3), rel=1e-5)
+    rows = [{"asset": "cube", "prompt": "p", "defects": "clean", "method": m, "p2p_all": x, "p2p_moving": x,
+             "nc": x, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0} for m, x in (("full", 0.01), ("static", 0.04))]
+    s = summarise(rows)
+    assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_moving"] == pytest.approx(0.25)
+    assert s["ratio_full_over_static"]["cube/p/clean"]["nc_better"]
+    assert markdown(rows).count("\n") == 3
