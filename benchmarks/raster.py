@@ -10,8 +10,13 @@ The last line printed is one JSON object: {"cases": [...], "device": "..."} (sam
 from __future__ import annotations
 
 import argparse
+import os
 
-from t2bs.render.splat.bench import main
+# Before torch loads libgomp: idle OpenMP workers sleep instead of spinning. On this shared,
+# oversubscribed 2-core machine spinning made every 2-thread torch op 3-10x slower (measured).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from t2bs.render.splat.bench import main  # noqa: E402
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -14,7 +14,7 @@ if [ -n "$missing" ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $missing >/dev/null
 fi
 
-python3 -m pip install -q -e ".[diffusers,viewer,ray,test]"
+python3 -m pip install -q -e ".[diffusers,viewer,ray,usd,test]"
 
 # MediaPipe face mesh for `t2bs retarget`: 0.10.21 is the last wheel with the face-mesh model inside,
 # and it needs numpy<2, so it lives in its own venv (t2bs calls it in a subprocess). --no-deps + the

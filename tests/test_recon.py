@@ -151,7 +151,7 @@ def test_global_stage_recovers_known_rigid_motion():
     from t2bs.recon.vcdgs import reconstruct_grid
 
     res = reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
-    g = res.model.global_se3.shared.detach().numpy()  # [T, 6]
+    g = res.model.global_se3.shared_table().detach().numpy()  # [T, 6]
     assert np.abs(g[0]).max() == 0.0  # frame 0 is the rest pose (anchored)
     r_err = roma.rotmat_geodesic_distance(roma.rotvec_to_rotmat(torch.tensor(g[1, :3], dtype=torch.float64)),
                                           torch.tensor(rot))
@@ -164,19 +164,20 @@ def test_global_stage_recovers_known_rigid_motion():
 def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
     mesh = sphere_mesh(2)
     v = mesh.vertices
-    # Non-rigid: the upper cap bulges forward and up (like a raised brow), plus a small shift.
-    w = np.clip((v[:, 1] - 0.1) / 0.3, 0, 1)[:, None]
-    moved = v + w * np.array([0.0, 0.05, 0.08]) + np.array([0.01, 0.0, 0.0])
-    frames = np.stack([v, moved]).astype(np.float32)
-    grid, static = splat_grid(mesh, frames)
-    cfg = preset("quick", resolution=40, static_iters=0, iterations=300, global_iters=50, num_control_points=32,
-                 batch_size=4, perceptual="none")
+    # Non-rigid: the upper half slides sideways (up to 0.1 = 8 % of the diagonal), the rest stays.
+    w = np.clip(v[:, 1] / 0.3, 0, 1)[:, None]
+    frames = np.stack([v, v + w * np.array([0.1, 0.0, 0.0])]).astype(np.float32)
+    grid, static = splat_grid(mesh, frames, size=64)
+    cfg = preset("quick", resolution=64, static_iters=0, iterations=300, global_iters=0, num_control_points=32,
+                 batch_size=4, perceptual="none", method="no_global")
     from t2bs.recon.vcdgs import evaluate_image_loss, reconstruct_grid
 
     res = reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
     before = evaluate_image_loss(res.model, res.data, cfg, deformed=False)
     after = evaluate_image_loss(res.model, res.data, cfg, deformed=True)
-    assert after < 0.6 * before
-    err_static = np.linalg.norm(frames - v[None], axis=-1)[1].mean()
-    err = np.linalg.norm(res.vertices - frames, axis=-1)[1].mean()
-    assert err < 0.5 * err_static, (err, err_static)
+    assert after < 0.3 * before, (after, before)
+    err_static = np.linalg.norm(frames[1] - v, axis=-1)
+    err = np.linalg.norm(res.vertices[1] - frames[1], axis=-1)
+    moving = err_static > 0.01
+    assert err[moving].mean() < 0.6 * err_static[moving].mean(), (err[moving].mean(), err_static[moving].mean())
+    assert err.mean() < 0.6 * err_static.mean()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +67,71 @@ def test_motion_landmarks_turtle(turtle):
     d = turtle.morph_targets["mouthOpen"][lm.vertex_ids[12:]]
     assert d[5:8, 1].mean() < 3 * min(d[1:4, 1].mean(), 0) - 0.01
     assert lm.eyeballs["left"].size > 0 and lm.eyeballs["right"].size > 0
+
+
+@pytest.fixture(scope="module")
+def fox():
+    from t2bs.retarget.bench import load_target
+
+    label, mesh, procedural = load_target("procedural:a cartoon fox")  # the bench's loader: the real generator
+    assert procedural and label == "procedural:a cartoon fox"
+    return mesh
+
+
+def test_parts_landmarks_procedural(fox, mesh_renderer):
+    """Parts backend on a procedural character: 6 / 6 points on the lids, 8 on the inner lip contour."""
+    from t2bs.retarget.landmarks import detect_landmarks
+
+    lm, regions = detect_landmarks(fox, "parts", size=256, renderer=mesh_renderer)
+    assert lm.backend == "parts" and lm.vertex_ids.shape == (20,)
+    part = np.array(fox.part_names)[fox.part_ids[lm.vertex_ids]]
+    assert (part[:6] == "eyelid_right").all() and (part[6:12] == "eyelid_left").all()
+    assert (part[13:16] == "lip_upper").all() and (part[17:20] == "lip_lower").all()
+    assert set(part[[12, 16]]) <= {"lip_upper", "lip_lower"}
+    pos = lm.positions
+    # Mirror: 36-41 on the character's right (-X, image left), 42-47 on its left (+X, image right).
+    assert pos[:6, 0].max() < 0 < pos[6:12, 0].min()
+    assert pos[12, 0] < 0 < pos[16, 0] and pos[12:, 1].max() < pos[:12, 1].min()
+    # Each eye's points surround its visible eyeball in the image (centroid within a third of its
+    # radius, every point within 1.5 radii); the mouth's straddle the lip line.
+    uv = lm.camera.project(pos)[0]
+    for sl, region in ((slice(0, 6), "right_eye"), (slice(6, 12), "left_eye"), (slice(12, 20), "mouth")):
+        ys, xs = np.nonzero(regions[region].mask)
+        centre, radius = np.array([xs.mean(), ys.mean()]), np.ptp(xs) / 2
+        assert np.linalg.norm(uv[sl].mean(0) - centre) < radius / 3, region
+        assert (np.linalg.norm(uv[sl] - centre, axis=1) < 1.5 * radius).all(), region
+    # The rig moves exactly the landmarks it should: blink_left the left lids (upper down), not the
+    # right ones; jaw_open the lower lip down and not the upper; smile pulls both corners up.
+    blink = fox.morph_targets["blink_left"][lm.vertex_ids]
+    assert (blink[7:9, 1] < -0.01).all() and np.abs(blink[:6]).max() < 1e-6
+    jaw = fox.morph_targets["jaw_open"][lm.vertex_ids]
+    assert (jaw[17:20, 1] < -0.05).all() and np.abs(jaw[13:16]).max() < 1e-6
+    smile = fox.morph_targets["smile"][lm.vertex_ids]
+    assert smile[12, 1] > 0.005 and smile[16, 1] > 0.005 and smile[12, 0] < 0 < smile[16, 0]
+
+
+def test_arap_rotations_match_dense():
+    """The solver's sparse local step (active vertices only) equals the plain per-vertex fit."""
+    from t2bs.character.primitives import icosphere
+    from t2bs.retarget.solve import RetargetSolver, mesh_edges
+
+    v, f = icosphere(2)
+    rng = np.random.default_rng(0)
+    basis = rng.normal(size=(3, len(v), 3)) * (v[None, :, 1:2] > 0.3)  # shapes move only the top cap
+    solver = RetargetSolver(v, basis, f, np.arange(20))
+    w = rng.normal(size=3) * 0.1
+    e = mesh_edges(f)
+    pose = v + np.tensordot(w, basis, axes=1)
+    cov = np.einsum("ea,eb->eab", v[e[:, 0]] - v[e[:, 1]], pose[e[:, 0]] - pose[e[:, 1]])
+    s = np.zeros((len(v), 3, 3))
+    np.add.at(s, e[:, 0], cov)
+    np.add.at(s, e[:, 1], cov)
+    u, _, vt = np.linalg.svd(s)
+    u[np.linalg.det(np.einsum("nba,ncb->nac", vt, u)) < 0, :, 2] *= -1  # nearest proper rotation
+    dense = np.einsum("nba,ncb->nac", vt, u)
+    rot = solver._rotations(w)
+    assert 0 < len(solver._active_v) < len(v)
+    assert np.allclose(rot, dense, atol=1e-8)
 
 
 def test_solver_recovers_model_weights(turtle):

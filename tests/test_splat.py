@@ -72,6 +72,24 @@ def test_cpu_matches_reference(kernel, per_camera):
     assert torch.isfinite(fast_g[0]).all() and torch.isfinite(ref_g[0]).all()
 
 
+def test_no_per_tile_cap(kernel):
+    """3000 faint Gaussians stacked on one tile: every one must be composited (no silent cap)."""
+    cam = frontal_camera(16)
+    vm, K = _cams([cam])
+    g = torch.Generator().manual_seed(3)
+    n = 3000
+    means = torch.randn(n, 3, generator=g) * 0.01
+    params = [means, torch.randn(n, 4, generator=g), torch.full((n, 3), 0.05), torch.full((n,), 0.005),
+              torch.rand(n, 3, generator=g)]
+    ref, ref_g = _render_with_grads(params, vm, K, 16, 16, "reference", None)
+    fast, fast_g = _render_with_grads(params, vm, K, 16, 16, "cpu", None)
+    assert ref["alpha"].max() > 0.9  # -ln(0.1) / 0.005: needs > 460 composited layers at the centre
+    torch.testing.assert_close(fast["rgb"], ref["rgb"], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(fast["alpha"], ref["alpha"], rtol=1e-4, atol=1e-4)
+    for a, b in zip(fast_g, ref_g):  # (quats get ~0 gradient: isotropic scales)
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=max(1e-4 * b.abs().max().item(), 1e-6))
+
+
 def test_reference_finite_differences():
     """torch.autograd.gradcheck (float64) on a tiny scene with overlapping Gaussians."""
     cam = frontal_camera(16)
@@ -234,3 +252,10 @@ def test_gsplat_matches_cpu():
     gpu = rasterize_gaussians(*[x.cuda() for x in p], vm.cuda(), K.cuda(), 64, 64, backend="auto")
     assert (gpu["rgb"].cpu() - cpu_out["rgb"]).abs().mean() < 1e-3
     assert (gpu["alpha"].cpu() - cpu_out["alpha"]).abs().mean() < 1e-3
+
+
+def test_bench_rejects_unknown_case():
+    from t2bs.render.splat.bench import bench_raster_command
+
+    with pytest.raises(UserError, match="unknown case"):
+        bench_raster_command(cases="a,z")

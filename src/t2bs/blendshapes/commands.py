@@ -54,7 +54,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
         if skipped:
             print(f"blendshapes: skipping unfinished reconstructions (no done.json): {', '.join(skipped)}", file=sys.stderr)
         if not recon:
-            raise UserError(f"{root}: no finished reconstructions in recon/ (run `t2bs recon {root}` or use --source gt)")
+            raise UserError(f"{root}: no finished reconstructions in recon/ (run `t2bs reconstruct {root}` or use --source gt)")
         for p in recon:
             try:
                 captures[p.parent.name] = np.load(p).astype(np.float32)
@@ -274,6 +274,11 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
                       renderer=None, ground_truth: dict[str, np.ndarray] | None = None) -> dict:
     """Build the model without the held-out prompts, fit their every frame, measure p2p and pixel L2.
 
+    p2p: mean over frames of the mean vertex distance divided by the neutral's bounding-box
+    diagonal. pixel_l2: mean over frames, pixels and RGB channels of the squared difference
+    (colours in 0..1) between renders of the capture and of the fit from the frontal camera
+    (whole image, white background; the mesh renderer with its default shading, vertex splats if
+    it is unavailable). The fit minimises L_geo + 0.1 L_rgb + prior (fit.py).
     Errors are measured against the held-out captures themselves (the paper's protocol); with
     ``ground_truth`` (video_id -> true [T, N, 3], e.g. for VCDGS captures) ``p2p_vs_gt`` also
     measures the fit against the true geometry.

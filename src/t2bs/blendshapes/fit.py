@@ -113,8 +113,9 @@ def _refine_rgb(model, w0, colors, faces, target_vertices, target_images, camera
             timg = torch.as_tensor(np.asarray(target_images, np.float32))  # [B, C, H, W, 3]
             target = [_resize_images(timg[:, c], cfg.image_size) for c in range(len(cams))]
     tvert = None if target_vertices is None else torch.as_tensor(np.asarray(target_vertices, np.float32))
-    # Optimise u = w / (diag sqrt(N)): the geometric term then has unit curvature in every
-    # coordinate, which L-BFGS (deterministic, no step size to tune) handles in a few iterations.
+    # Optimise u = w / (diag sqrt(N)), a weight in units of "RMS vertex motion per bbox diagonal":
+    # every coordinate on the same scale as the losses, which L-BFGS (deterministic, line search,
+    # no step size to tune) handles in a few iterations.
     unit = diag * np.sqrt(n)
     u = torch.tensor(w0 / unit, dtype=torch.float32, requires_grad=True)
     opt = torch.optim.LBFGS([u], lr=1.0, max_iter=cfg.rgb_steps, history_size=10, line_search_fn="strong_wolfe",

@@ -85,10 +85,13 @@ def build_model(
 ) -> BlendshapeModel:
     """PCA over every frame of every capture (``video_id -> [T, N, 3]``) as offsets from ``neutral``.
 
-    The number of components is min(components, numerical rank of the offsets). The rank uses
-    numpy's ``matrix_rank`` rule for float32 data (singular values below
-    ``s_max * max(frames, 3N) * eps_float32`` are rounding noise), unless ``rank_tol`` (relative to
-    ``s_max``) is given.
+    The number of components is min(components, numerical rank of the offsets). The rank counts
+    singular values above the rounding noise of float32 vertex positions: noise of size
+    ``eps_float32 * max|x|`` per coordinate has a largest singular value of about that times
+    ``sqrt(frames) + sqrt(3N)`` (random-matrix bound). numpy's ``matrix_rank`` rule
+    (``s_max * max(frames, 3N) * eps``) would be ~1000x stricter here and drop real, small
+    motions (e.g. the non-linear residue of a head turn) on large meshes. ``rank_tol`` (relative
+    to ``s_max``) overrides it.
     """
     neutral = np.asarray(neutral, dtype=np.float32)
     if neutral.ndim != 2 or neutral.shape[1] != 3:
@@ -116,7 +119,12 @@ def build_model(
     total = float(np.einsum("ij,ij->", data, data, dtype=np.float64))
     if total <= 0 or s.size == 0 or s[0] <= 0:
         raise UserError("captures do not move: every frame equals the neutral mesh, nothing to model")
-    tol = rank_tol if rank_tol is not None else max(data.shape) * np.finfo(np.float32).eps
+    if rank_tol is None:
+        scale = max(float(np.abs(neutral).max()), max(float(np.abs(np.asarray(captures[v])).max()) for v in ids))
+        noise = np.finfo(np.float32).eps * scale * (np.sqrt(data.shape[0]) + np.sqrt(data.shape[1]))
+        tol = max(noise / s[0], 1e-6)  # 1e-6: below it the Gram-matrix SVD itself is not accurate
+    else:
+        tol = rank_tol
     rank = int((s > s[0] * tol).sum())
     k = min(components, rank)
     s, vt = s[:k], vt[:k]

@@ -23,6 +23,7 @@ class VCDGSConfig:
     static_lr: float = 0.01  # learning rate of that fit (log-scales, quaternions, colours)
     static_views_per_iter: int = 3  # views rendered per static-fit step
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
+    debias_static: bool = True  # add the rest-pose residual (splats - mesh render, per view) to the targets (vcdgs.debias_targets)
     static_shading: str = "auto"  # mesh shading for the static fit: auto (the grid's, from its meta) | unlit | lambert
     # --- control points (appendix) ---
     num_control_points: int = 400  # k; the paper uses 2000
@@ -35,6 +36,8 @@ class VCDGSConfig:
     depth: int = 4  # hidden layers
     refine_hidden: int = 32  # RefineMLP width (it runs on every Gaussian of every (v, t) pair)
     refine_depth: int = 2  # RefineMLP hidden layers
+    refine_pos_freqs: int = 2  # RefineMLP position frequencies: low, so colour offsets stay smooth over the surface
+    #   (lighting / colour drift) and cannot paint a geometric change (an open mouth) onto the closed one
     pos_freqs: int = 6  # Fourier frequencies of control-point / Gaussian positions
     time_freqs: int = 5  # Fourier frequencies of normalised time
     view_freqs: int = 3  # Fourier frequencies of the normalised view index

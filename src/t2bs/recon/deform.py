@@ -105,22 +105,36 @@ class DeformMLP(nn.Module):
 
 
 class GlobalSE3(nn.Module):
-    """Global rigid motion per (v, t): a shared table per t plus a view residual table per (v, t)."""
+    """Global rigid motion per (v, t): a shared part per t plus a view residual per (v, t).
+
+    Both are coefficients on a cosine (DCT-II) basis over the frames rather than one free row
+    per frame: with T basis functions this represents any per-frame motion, but every step
+    updates every frame coherently (a table row only moves when its frame is sampled, and
+    Adam's momentum keeps pushing unsampled rows, which makes the warm-up noisy).
+    """
 
     def __init__(self, views: int, frames: int, view_conditioned: bool, anchor_first_frame: bool = True):
         super().__init__()
         self.anchor = anchor_first_frame  # the shared motion of frame 0 is the identity
-        self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T, rotvec 3 + translation 3]
+        k = torch.arange(frames, dtype=torch.float32)
+        basis = torch.cos(math.pi * (k[:, None] + 0.5) * k[None, :] / max(frames, 1))  # [T, T] DCT-II
+        basis = basis * torch.where(k == 0, 1.0, math.sqrt(2.0)) / math.sqrt(max(frames, 1))  # orthonormal
+        self.register_buffer("basis", basis)
+        self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T coefficients, rotvec 3 + translation 3]
         self.residual = nn.Parameter(torch.zeros(views, frames, 6)) if view_conditioned else None
+
+    def shared_table(self) -> torch.Tensor:
+        """[T, 6] shared motion of every frame."""
+        g = self.basis @ self.shared
+        return g - g[:1] if self.anchor else g
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, view_on: torch.Tensor):
         """-> (shared [B, 6], residual [B, 6])."""
-        shared = self.shared[t_idx]
-        if self.anchor:
-            shared = shared * (t_idx != 0).to(shared.dtype)[:, None]
+        shared = self.shared_table()[t_idx]
         if self.residual is None:
             return shared, torch.zeros_like(shared)
-        return shared, self.residual[v_idx, t_idx] * view_on[:, None]
+        res = torch.einsum("bk,bkc->bc", self.basis[t_idx], self.residual[v_idx])
+        return shared, res * view_on[:, None]
 
 
 class RefineMLP(nn.Module):
@@ -163,11 +177,11 @@ class VCDGSModel(nn.Module):
         self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view,
                                 anchor_first_frame=cfg.anchor_first_frame)
         self.global_se3 = GlobalSE3(views, frames, cfg.use_view, cfg.anchor_first_frame) if cfg.use_global else None
-        self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.pos_freqs, cfg.time_freqs,
+        self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.refine_pos_freqs, cfg.time_freqs,
                                 cfg.view_freqs) if cfg.use_refine else None
         # Fourier features of the fixed points, computed once (positions never change).
         self.register_buffer("pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.pos_freqs), persistent=False)
-        self.register_buffer("pe_means", fourier(self.means, cfg.pos_freqs), persistent=False)
+        self.register_buffer("pe_means", fourier(self.means, cfg.refine_pos_freqs), persistent=False)
 
     # -- encodings of the discrete view / time indices --
     def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:

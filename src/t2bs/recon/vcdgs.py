@@ -48,6 +48,8 @@ class TrainData:
     cameras: list[Camera]  # [V] resized to the training resolution
     canonical_view: int  # the paper's v = 0
     train_views: list[int]  # views used for training (holdout removed)
+    bias_rgb: torch.Tensor | None = None  # [V, H, W, 3] splat - mesh render of the rest pose (debias_targets)
+    bias_alpha: torch.Tensor | None = None  # [V, H, W] same for alpha vs mask
 
     @property
     def views(self) -> int:
@@ -115,15 +117,28 @@ def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambe
 
 def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False
                 ) -> tuple[VCDGSModel, StaticGaussians]:
-    """Static Gaussians (fitted) + control points -> an untrained VCDGS model."""
+    """Static Gaussians (fitted) + control points -> an untrained VCDGS model.
+
+    ``static_targets``: (rgb [V, H, W, 3], mask [V, H, W]) renders of the static mesh from every
+    view of ``data`` (made with the mesh renderer when None). With ``cfg.debias_static`` the
+    per-view difference between the fitted splats and these renders is stored in
+    ``data.bias_rgb`` / ``data.bias_alpha`` (see ``debias_targets``)."""
     gs = init_static_gaussians(mesh, cfg.flatness)
-    cams = [data.cameras[v] for v in data.train_views]
-    if cfg.static_iters > 0:
+    if cfg.static_iters > 0 or cfg.debias_static:
         if static_targets is None:
-            static_targets = static_mesh_targets(mesh, cams, cfg.static_shading)
+            static_targets = static_mesh_targets(mesh, data.cameras, cfg.static_shading)
         rgb, mask = static_targets
-        gs = fit_static_gaussians(gs, rgb, mask, cams, cfg.static_iters, cfg.static_lr, cfg.static_views_per_iter,
-                                  cfg.seed, device=_device(cfg).type, progress=progress)
+        tv = data.train_views
+        gs = fit_static_gaussians(gs, rgb[tv], mask[tv], [data.cameras[v] for v in tv], cfg.static_iters, cfg.static_lr,
+                                  cfg.static_views_per_iter, cfg.seed, device=_device(cfg).type, progress=progress)
+        if cfg.debias_static:
+            vm, ks = camera_tensors(data.cameras)
+            w, h = data.size
+            with torch.no_grad():
+                out = render(torch.as_tensor(gs.means), torch.as_tensor(gs.quats), torch.as_tensor(gs.log_scales).exp(),
+                             torch.as_tensor(gs.colors), vm, ks, w, h)
+            data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
+            data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
     cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
                                seed=cfg.seed)
     model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
@@ -134,6 +149,23 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
         if cps.cp_neighbours.shape[1] else 0.05
     model.spacing = max(spacing, 1e-4)
     return model, gs
+
+
+def debias_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
+    """Targets of a batch with the static residual added: (rgb [B, H, W, 3], mask [B, H, W] | None).
+
+    One Gaussian per vertex cannot reproduce a mesh render exactly (blur, ~1 px silhouette
+    spill). Left alone, the optimiser explains that constant mismatch with geometry (it shrinks
+    the head by a few %). Adding the rest-pose residual (splats - mesh, per view) to every frame
+    of that view makes the loss measure change relative to the rest pose instead."""
+    vi, ti = v_idx.cpu(), t_idx.cpu()
+    rgb = data.images[vi, ti]
+    mask = None if data.masks is None else data.masks[vi, ti]
+    if data.bias_rgb is not None:
+        rgb = rgb + data.bias_rgb[vi]
+        if mask is not None and data.bias_alpha is not None:
+            mask = mask + data.bias_alpha[vi]
+    return rgb, mask
 
 
 def _device(cfg: VCDGSConfig) -> torch.device:
@@ -165,8 +197,10 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
         r = out["residual"]
         reg = (r[..., 3:] ** 2).sum(-1).mean() / s2 + (r[..., :3] ** 2).sum(-1).mean()
         if out["g_residual"] is not None:
+            # A global rotation by theta moves points ~radius * theta: measure both parts as motion.
             g = out["g_residual"]
-            reg = reg + (g[:, 3:] ** 2).sum(-1).mean() / s2 + (g[:, :3] ** 2).sum(-1).mean()
+            radius = float(model.means.norm(dim=-1).mean())
+            reg = reg + ((g[:, 3:] ** 2).sum(-1).mean() + radius ** 2 * (g[:, :3] ** 2).sum(-1).mean()) / s2
         terms["view_residual"] = cfg.view_residual_weight * reg
     if out["offsets"] is not None and cfg.refine_weight > 0:
         dc, ds, dr = out["offsets"]
@@ -190,8 +224,6 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
 
     dev = _device(cfg)
     model.to(dev)
-    images = data.images.to(dev)
-    masks = None if data.masks is None else data.masks.to(dev)
     vm, ks = camera_tensors(data.cameras, dev)
     w, h = data.size
     perceptual = PerceptualLoss(cfg.perceptual, cfg.lpips_weights).to(dev)
@@ -229,7 +261,8 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         v_idx, t_idx = v_idx.to(dev), t_idx.to(dev)
         out = model(v_idx, t_idx, refine=joint)
         r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
-        terms = image_loss(r, images[v_idx, t_idx], None if masks is None else masks[v_idx, t_idx], perceptual, cfg)
+        tgt, msk = debias_targets(data, v_idx, t_idx)
+        terms = image_loss(r, tgt.to(dev), None if msk is None else msk.to(dev), perceptual, cfg)
         img = sum(terms.values()).detach()
         if joint:
             terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
@@ -278,7 +311,7 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
                 r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
             else:
                 r = render(model.means, model.quats, model.log_scales.exp(), model.colors, vm[v_idx], ks[v_idx], w, h)
-            tgt = data.images[v_idx.cpu(), t_idx.cpu()].to(dev)
+            tgt = debias_targets(data, v_idx, t_idx)[0].to(dev)
             total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.huber_delta)) * len(t_idx)
             count += len(t_idx)
     return total / max(count, 1)

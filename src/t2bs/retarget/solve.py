@@ -63,6 +63,31 @@ class RetargetSolver:
         self.db = (self.basis[:, i] - self.basis[:, j]).reshape(self.k, -1)
         n_e = len(self.edges)
         self.h_arap = self.db @ self.db.T / n_e
+        # Local step precomputation: the rotations only need solving at vertices touching an edge
+        # some basis shape changes (elsewhere the pose equals the rest pose and R = I), and the
+        # per-vertex covariance sums are a sparse incidence product (much faster than np.add.at).
+        from scipy import sparse
+
+        moving = np.abs(self.db.reshape(self.k, n_e, 3)).max(axis=(0, 2)) > 0  # [E]
+        self._active_v = np.unique(self.edges[moving])  # [A] vertex ids
+        self._moving_e = np.nonzero(moving)[0]  # [Em]
+        ea = self.edges[self._moving_e]
+        slot = np.full(len(self.neutral), -1)
+        slot[self._active_v] = np.arange(len(self._active_v))
+        rows = np.concatenate([slot[ea[:, 0]], slot[ea[:, 1]]])
+        cols = np.concatenate([np.arange(len(ea))] * 2)
+        self._inc = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(self._active_v), len(ea)))  # [A, Em]
+        # Static edges next to an active vertex still add their rest covariance to its sum.
+        static = ~moving
+        ei = self.edges[static]
+        cov0 = np.einsum("ea,eb->eab", self.e0[static], self.e0[static]).reshape(-1, 9)
+        s0 = np.zeros((len(self._active_v), 9))
+        for col in (0, 1):
+            sl = slot[ei[:, col]]
+            ok = sl >= 0
+            for c in range(9):
+                s0[:, c] += np.bincount(sl[ok], weights=cov0[ok, c], minlength=len(self._active_v))
+        self._s_static = s0  # [A, 9]
         # Landmark rows: X, Y of the 20 landmark vertices, [40, K].
         self.a_lm = self.basis[:, self.ids, :2].reshape(self.k, -1).T
         self.h_lm = self.a_lm.T @ self.a_lm / len(self.ids)
@@ -92,13 +117,14 @@ class RetargetSolver:
 
     def _rotations(self, w: np.ndarray) -> np.ndarray:
         """Local step: per-vertex best rotation [N, 3, 3] from rest edges to the edges of pose w."""
+        rot = np.broadcast_to(np.eye(3), (len(self.neutral), 3, 3)).copy()
+        if len(self._active_v) == 0:
+            return rot
+        ea = self.edges[self._moving_e]
         v = self.neutral + np.tensordot(w, self.basis, axes=1)
-        i, j = self.edges[:, 0], self.edges[:, 1]
-        e = v[i] - v[j]
-        cov = np.einsum("ea,eb->eab", self.e0, e)  # [E, 3, 3]
-        s = np.zeros((len(v), 3, 3))
-        np.add.at(s, i, cov)
-        np.add.at(s, j, cov)
+        e = v[ea[:, 0]] - v[ea[:, 1]]
+        cov = np.einsum("ea,eb->eab", self.e0[self._moving_e], e).reshape(-1, 9)  # [Em, 9]
+        s = (self._inc @ cov + self._s_static).reshape(-1, 3, 3)  # [A, 3, 3]
         u, _, vt = np.linalg.svd(s)
         r = np.einsum("nba,ncb->nac", vt, u)  # V U^T
         det = np.linalg.det(r)
@@ -107,7 +133,8 @@ class RetargetSolver:
             u2 = u[fix].copy()
             u2[:, :, 2] *= -1
             r[fix] = np.einsum("nba,ncb->nac", vt[fix], u2)
-        return r
+        rot[self._active_v] = r
+        return rot
 
     def solve_frame(self, targets_xy: np.ndarray, eye_openness: np.ndarray | None = None) -> np.ndarray:
         """Weights [K] for landmark targets [20, 2] (world X, Y) and eye openness [2] (right, left)."""

@@ -12,6 +12,10 @@ camera matrices). Backends:
   footprint cut-off rules, agreement ~1e-3).
 - "dense": every Gaussian against every pixel, pure PyTorch; a benchmark baseline only.
 - "auto": gsplat for CUDA tensors when it is importable, else "cpu".
+
+Speed (2-core CPU, see benchmarks/raster.py): the kernel runs on torch.get_num_threads()
+threads. On an oversubscribed machine set OMP_WAIT_POLICY=PASSIVE before torch is imported:
+spinning OpenMP workers made the surrounding 2-thread torch ops 3-10x slower (measured).
 """
 
 from __future__ import annotations

@@ -113,18 +113,33 @@ def run_case(name: str, repeats: int = 5, with_reference: bool = True, with_dens
     result = {"name": name, "height": size, "width": size, "gaussians": n, "cameras": cams,
               "fast_ms": round(fast_s * 1e3, 2), "reference_ms": None, "dense_ms": None, "max_abs_diff": None}
     diffs, depth_diffs = [], []
+    fast_pc = None  # fast path run one camera at a time, to diff against per-camera baselines
+
+    def fast_like(per_camera: bool):
+        # Compare like with like: a 1-camera projection rounds differently from a 4-camera batched
+        # one, and the hard footprint cut-offs (d2 <= d2max) turn 1-ulp input differences into
+        # whole-contribution jumps at a few boundary pixels.
+        nonlocal fast_pc
+        if not per_camera:
+            return fast
+        if fast_pc is None:
+            fast_pc = _timed(params, vm, K, size, "cpu", weights, 1, per_camera=True)[1]
+        return fast_pc
+
     # Memory of the autograd baselines: ~16 float32 [pixels, Gaussians] tensors live per pair.
     ref_bytes = _pairs(params, vm, K, size) * 16 * 16 * 4 * 16
-    if with_reference and ref_bytes <= MEMORY_BUDGET:
-        ref_s, ref = _timed(params, vm, K, size, "reference", weights, max(1, repeats // 3))
+    if with_reference and ref_bytes <= cams * MEMORY_BUDGET:
+        # All cameras in one graph when it fits, else one camera at a time (same work).
+        split = ref_bytes > MEMORY_BUDGET
+        ref_s, ref = _timed(params, vm, K, size, "reference", weights, max(1, repeats // 3), per_camera=split)
         result["reference_ms"] = round(ref_s * 1e3, 1)
-        diffs.append(_diff(fast, ref))
-        depth_diffs.append(float(((fast["depth"] - ref["depth"]) * ref["alpha"]).abs().max()))
+        diffs.append(_diff(fast_like(split), ref))
+        depth_diffs.append(float(((fast_like(split)["depth"] - ref["depth"]) * ref["alpha"]).abs().max()))
     dense_bytes = size * size * n * 4 * 16  # per camera (run one camera at a time)
     if with_dense and dense_bytes <= MEMORY_BUDGET:
         dense_s, dense = _timed(params, vm, K, size, "dense", weights, max(1, repeats // 5), per_camera=True)
         result["dense_ms"] = round(dense_s * 1e3, 1)
-        diffs.append(_diff(fast, dense))
+        diffs.append(_diff(fast_like(True), dense))
     if diffs:
         result["max_abs_diff"] = max(diffs)
     if depth_diffs:
@@ -153,6 +168,17 @@ def main(cases: str = "a,b,c", repeats: int = 5, threads: int = 2) -> dict:
     report = {"cases": out,
               "device": f"cpu: {cpu_name}, torch threads={threads}, os.cpu_count={os.cpu_count()}",
               "load_average_1m": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-              "repeats": repeats, "statistic": "median"}
+              "repeats": repeats, "statistic": "median",
+              "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default (spinning)")}
     print(json.dumps(report), flush=True)
     return report
+
+
+def bench_raster_command(cases: str = "a,b,c", repeats: int = 5, threads: int = 2) -> None:
+    """Splat rasterizer: fast C++ vs autograd reference vs dense, ms per forward+backward (JSON)."""
+    from t2bs.errors import UserError
+
+    bad = [c for c in cases.split(",") if c.strip() not in CASES]
+    if bad:
+        raise UserError(f"unknown case(s) {', '.join(bad)}; choose from {', '.join(CASES)}")
+    main(cases, repeats, threads)

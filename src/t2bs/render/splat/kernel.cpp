@@ -6,7 +6,7 @@
 //   d2 = (a*dx*dx + c*dy*dy) + (2*b)*dx*dy, touch iff d2 <= d2max,
 //   alpha = min(0.99, o * exp(-0.5 * d2)), stop before T * (1 - alpha) < 1e-4.
 //
-// Layout: each (camera, tile) is one work item (OpenMP, dynamic schedule). Per tile, Gaussians
+// Layout: each (camera, tile) is one work item (thread pool, dynamic schedule). Per tile, Gaussians
 // are visited front to back and each one only touches the pixels of its own bounding box inside
 // the tile (most footprints are a few pixels wide at the resolutions VCDGS uses), so the cost
 // is ~ the number of (pixel, Gaussian) pairs actually inside footprints. Per-Gaussian gradients
@@ -15,7 +15,8 @@
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
-#include <omp.h>
+#include <atomic>
+#include <thread>
 
 #include <algorithm>
 #include <cmath>
@@ -24,6 +25,28 @@
 #include <vector>
 
 namespace {
+
+// Run fn(item, thread) for item in [0, n) on nthreads threads pulling items from an atomic
+// counter (dynamic schedule). Plain std::threads rather than an OpenMP team: the machines this
+// runs on are often oversubscribed, and OpenMP's spinning barriers then burn the time slices
+// the other worker needs (measured: 2 OpenMP threads were ~2x slower than 1 under load).
+template <class F>
+void parallel_items(int64_t n, int nthreads, F&& fn) {
+  nthreads = (int)std::max<int64_t>(1, std::min<int64_t>(nthreads, n));
+  if (nthreads == 1) {
+    for (int64_t i = 0; i < n; ++i) fn(i, 0);
+    return;
+  }
+  std::atomic<int64_t> next{0};
+  auto worker = [&](int tid) {
+    for (int64_t i; (i = next.fetch_add(1, std::memory_order_relaxed)) < n;) fn(i, tid);
+  };
+  std::vector<std::thread> pool;
+  pool.reserve(nthreads - 1);
+  for (int t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);
+  worker(0);
+  for (auto& th : pool) th.join();
+}
 
 constexpr float ALPHA_MAX = 0.99f;
 constexpr float T_STOP = 1e-4f;
@@ -37,38 +60,6 @@ struct Gauss {
   int x0, x1, y0, y1;  // inclusive pixel box (clamped to the image); x0 > x1 = empty
 };
 
-
-// exp(x) for x <= 0 (argument clamped at -87): Cody-Waite range reduction + degree-7 Taylor,
-// ~2e-7 relative error, branch-free so the pixel loops vectorize. Forward and backward call
-// the same function, so both passes see identical alphas.
-static inline float fast_exp(float x) {
-  x = x < -87.f ? -87.f : x;
-  const float t = x * 1.44269504088896341f;
-  const int n = (int)(t - 0.5f);  // t <= 0: truncation of t - 0.5 rounds to nearest
-  const float fn = (float)n;
-  const float r = (x - fn * 0.693145751953125f) - fn * 1.42860682030941723e-6f;
-  const float p = 1.f + r * (1.f + r * (0.5f + r * (1.66666672e-1f + r * (4.16666679e-2f +
-                  r * (8.33333377e-3f + r * (1.38888892e-3f + r * 1.98412701e-4f))))));
-  union { int i; float f; } s;
-  s.i = (n + 127) << 23;
-  return p * s.f;
-}
-
-// Conservative pixel columns [*xa, *xb] of row dy where d2 <= d2m can hold (1 px and 0.1 %
-// margins: the exact per-pixel test decides, this only trims the bounding box to the ellipse).
-static inline bool row_span(const Gauss& g, float dy, int bx0, int bx1, int* xa, int* xb) {
-  const float dm = g.d2m * 1.001f + 1e-3f;
-  const float bdy = g.cb * dy;
-  const float disc = bdy * bdy - g.ca * (g.cc * dy * dy - dm);
-  if (disc < 0.f) return false;
-  const float sq = std::sqrt(disc);
-  const float lo = g.mx + (-bdy - sq) / g.ca - 0.5f, hi = g.mx + (-bdy + sq) / g.ca - 0.5f;
-  if (!(lo <= (float)bx1 + 1.f) || !(hi >= (float)bx0 - 1.f)) return false;
-  *xa = std::max(bx0, (int)std::floor(lo) - 1);
-  *xb = std::min(bx1, (int)std::ceil(hi) + 1);
-  return *xa <= *xb;
-}
-
 struct Inputs {
   int C, N, W, H, tile, ntx, nty, ntiles;
   std::vector<Gauss> gs;  // [C * N]
@@ -77,6 +68,11 @@ struct Inputs {
 Inputs pack(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opac,
             const torch::Tensor& colors, const torch::Tensor& depths, const torch::Tensor& d2max,
             const torch::Tensor& radii, const torch::Tensor& valid, int W, int H, int tile) {
+  TORCH_CHECK(tile >= 1 && tile <= 32, "tile size must be in [1, 32] (per-tile pixel state lives on the stack)");
+  for (const torch::Tensor* t : {&means2d, &conics, &opac, &colors, &depths, &d2max, &radii})
+    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous() && t->device().is_cpu(),
+                "splat kernel inputs must be contiguous float32 CPU tensors");
+  TORCH_CHECK(valid.scalar_type() == torch::kBool && valid.is_contiguous(), "valid must be a contiguous bool tensor");
   Inputs in;
   in.C = means2d.size(0);
   in.N = means2d.size(1);
@@ -96,8 +92,9 @@ Inputs pack(const torch::Tensor& means2d, const torch::Tensor& conics, const tor
   const float* dm = d2max.data_ptr<float>();
   const float* rad = radii.data_ptr<float>();
   const bool* val = valid.data_ptr<bool>();
-  at::parallel_for(0, total, 4096, [&](int64_t b, int64_t e) {
-    for (int64_t i = b; i < e; ++i) {
+  const int64_t chunk = 8192;
+  parallel_items((total + chunk - 1) / chunk, at::get_num_threads(), [&](int64_t ci, int) {
+    for (int64_t i = ci * chunk, e = std::min(total, i + chunk); i < e; ++i) {
       Gauss& g = in.gs[i];
       g.mx = m[2 * i];
       g.my = m[2 * i + 1];
@@ -136,8 +133,7 @@ void bin(const Inputs& in, std::vector<int64_t>& offsets, std::vector<int32_t>& 
   const int C = in.C, N = in.N, T = in.ntiles, tile = in.tile;
   std::vector<std::vector<int32_t>> per_cam(C);
   std::vector<int64_t> counts((int64_t)C * T + 1, 0);
-  #pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(C, at::get_num_threads()))
-  for (int c = 0; c < C; ++c) {
+  parallel_items(C, at::get_num_threads(), [&](int64_t c, int) {
     const Gauss* gs = in.gs.data() + (int64_t)c * N;
     std::vector<int32_t> order;
     order.reserve(N);
@@ -153,12 +149,11 @@ void bin(const Inputs& in, std::vector<int64_t>& offsets, std::vector<int32_t>& 
         for (int tx = g.x0 / tile; tx <= g.x1 / tile; ++tx) cnt[ty * in.ntx + tx]++;
     }
     per_cam[c] = std::move(order);
-  }
+  });
   std::partial_sum(counts.begin(), counts.end(), counts.begin());
   offsets = counts;
   ids.assign(offsets.back(), 0);
-  #pragma omp parallel for schedule(dynamic, 1) num_threads(std::min(C, at::get_num_threads()))
-  for (int c = 0; c < C; ++c) {
+  parallel_items(C, at::get_num_threads(), [&](int64_t c, int) {
     const Gauss* gs = in.gs.data() + (int64_t)c * N;
     std::vector<int64_t> fill(offsets.begin() + (int64_t)c * T, offsets.begin() + (int64_t)(c + 1) * T);
     for (int32_t i : per_cam[c]) {
@@ -166,7 +161,7 @@ void bin(const Inputs& in, std::vector<int64_t>& offsets, std::vector<int32_t>& 
       for (int ty = g.y0 / tile; ty <= g.y1 / tile; ++ty)
         for (int tx = g.x0 / tile; tx <= g.x1 / tile; ++tx) ids[fill[ty * in.ntx + tx]++] = i;
     }
-  }
+  });
 }
 
 }  // namespace
@@ -196,58 +191,48 @@ std::vector<torch::Tensor> splat_forward(torch::Tensor means2d, torch::Tensor co
   int32_t* o_last = last.data_ptr<int32_t>();
   const int64_t items = (int64_t)C * in.ntiles;
 
-  #pragma omp parallel for schedule(dynamic, 1) num_threads(at::get_num_threads())
-  for (int64_t item = 0; item < items; ++item) {
+  parallel_items(items, at::get_num_threads(), [&](int64_t item, int) {
     const int c = item / in.ntiles, t = item % in.ntiles;
     const int tx0 = (t % in.ntx) * tile, ty0 = (t / in.ntx) * tile;
     const int tx1 = std::min<int>(tx0 + tile, W) - 1, ty1 = std::min<int>(ty0 + tile, H) - 1;
     const int tw = tx1 - tx0 + 1, th = ty1 - ty0 + 1, npix = tw * th;
     float T[1024], R[1024], G[1024], B[1024], D[1024];
     int32_t lst[1024];
-    int32_t done[1024];
+    bool done[1024];
     const int64_t beg = offsets[item], end = offsets[item + 1];
     for (int p = 0; p < npix; ++p) {
-      T[p] = 1.f; R[p] = G[p] = B[p] = D[p] = 0.f; done[p] = 0; lst[p] = (int32_t)(end - beg);
+      T[p] = 1.f; R[p] = G[p] = B[p] = D[p] = 0.f; done[p] = false; lst[p] = (int32_t)(end - beg);
     }
     int ndone = 0;
     const Gauss* gs = in.gs.data() + (int64_t)c * N;
     for (int64_t k = beg; k < end && ndone < npix; ++k) {
       const Gauss& g = gs[ids[k]];
+      const int x0 = std::max(g.x0, tx0), x1 = std::min(g.x1, tx1);
       const int y0 = std::max(g.y0, ty0), y1 = std::min(g.y1, ty1);
-      const int bx0 = std::max(g.x0, tx0), bx1 = std::min(g.x1, tx1);
-      const int32_t kk = (int32_t)(k - beg);
       for (int y = y0; y <= y1; ++y) {
         const float dy = ((float)y + 0.5f) - g.my;
-        int xa, xb;
-        if (!row_span(g, dy, bx0, bx1, &xa, &xb)) continue;
         const float cdy = g.cc * dy * dy;
-        const float bdy = g.cb2;
-        const int row = (y - ty0) * tw - tx0;
-        float* Tr = T + row; float* Rr = R + row; float* Gr = G + row; float* Br = B + row; float* Dr = D + row;
-        int32_t* Lr = lst + row; int32_t* Dn = done + row;
-        int nd = 0;
-        #pragma omp simd reduction(+ : nd)
-        for (int x = xa; x <= xb; ++x) {
+        for (int x = x0; x <= x1; ++x) {
+          const int p = (y - ty0) * tw + (x - tx0);
+          if (done[p]) continue;
           const float dx = ((float)x + 0.5f) - g.mx;
-          const float d2 = (g.ca * dx * dx + cdy) + bdy * dx * dy;
-          const float e = fast_exp(-0.5f * d2);
-          const float a = std::min(ALPHA_MAX, g.o * e);
-          const bool live = (d2 <= g.d2m) & (Dn[x] == 0);
-          const float Tp = Tr[x];
-          const float Tn = Tp * (1.f - a);
-          const bool stop = live & (Tn < T_STOP);
-          const bool use = live & !stop;
-          const float w = use ? a * Tp : 0.f;
-          Rr[x] += w * g.r;
-          Gr[x] += w * g.g;
-          Br[x] += w * g.b;
-          Dr[x] += w * g.z;
-          Tr[x] = use ? Tn : Tp;
-          Lr[x] = stop ? kk : Lr[x];
-          Dn[x] = stop ? 1 : Dn[x];
-          nd += stop ? 1 : 0;
+          const float d2 = (g.ca * dx * dx + cdy) + g.cb2 * dx * dy;
+          if (!(d2 <= g.d2m)) continue;
+          const float a = std::min(ALPHA_MAX, g.o * std::exp(-0.5f * d2));
+          const float Tn = T[p] * (1.f - a);
+          if (Tn < T_STOP) {
+            done[p] = true;
+            lst[p] = (int32_t)(k - beg);
+            ++ndone;
+            continue;
+          }
+          const float w = a * T[p];
+          R[p] += w * g.r;
+          G[p] += w * g.g;
+          B[p] += w * g.b;
+          D[p] += w * g.z;
+          T[p] = Tn;
         }
-        ndone += nd;
       }
     }
     for (int y = ty0; y <= ty1; ++y)
@@ -262,7 +247,7 @@ std::vector<torch::Tensor> splat_forward(torch::Tensor means2d, torch::Tensor co
         o_a[q] = 1.f - T[p];
         o_last[q] = lst[p];
       }
-  }
+  });
   auto t_off = torch::from_blob(offsets.data(), {(int64_t)offsets.size()}, torch::kInt64).clone();
   auto t_ids = torch::from_blob(ids.data(), {(int64_t)ids.size()}, torch::kInt32).clone();
   return {acc_rgb, alpha, acc_depth, T_final, last, t_off, t_ids};
@@ -289,9 +274,8 @@ torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch:
   std::vector<float> bufs((int64_t)nthreads * gsize, 0.f);
   const int64_t items = (int64_t)C * in.ntiles;
 
-  #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
-  for (int64_t item = 0; item < items; ++item) {
-    float* buf = bufs.data() + (int64_t)omp_get_thread_num() * gsize;
+  parallel_items(items, nthreads, [&](int64_t item, int tid) {
+    float* buf = bufs.data() + (int64_t)tid * gsize;
     const int c = item / in.ntiles, t = item % in.ntiles;
     const int tx0 = (t % in.ntx) * tile, ty0 = (t / in.ntx) * tile;
     const int tx1 = std::min<int>(tx0 + tile, W) - 1, ty1 = std::min<int>(ty0 + tile, H) - 1;
@@ -322,63 +306,59 @@ torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch:
       const int x0 = std::max(g.x0, tx0), x1 = std::min(g.x1, tx1);
       const int y0 = std::max(g.y0, ty0), y1 = std::min(g.y1, ty1);
       float d_mx = 0, d_my = 0, d_ca = 0, d_cb = 0, d_cc = 0, d_o = 0, d_r = 0, d_g = 0, d_b = 0, d_z = 0;
-      int nany = 0;
+      bool any = false;
       for (int y = y0; y <= y1; ++y) {
         const float dy = ((float)y + 0.5f) - g.my;
-        int xa, xb;
-        if (!row_span(g, dy, x0, x1, &xa, &xb)) continue;
         const float cdy = g.cc * dy * dy;
-        const int row = (y - ty0) * tw - tx0;
-        float* Tr = T + row; const float* Tfr = Tfin + row;
-        float* Rrr = Rr + row; float* Rgr = Rg + row; float* Rbr = Rb + row; float* RDr = RD + row;
-        const float* grr = gr + row; const float* ggr = gg + row; const float* gbr = gb + row;
-        const float* gar = ga + row; const float* gdr = gd + row; const int32_t* Lr = lst + row;
-        #pragma omp simd reduction(+ : d_mx, d_my, d_ca, d_cb, d_cc, d_o, d_r, d_g, d_b, d_z, nany)
-        for (int x = xa; x <= xb; ++x) {
+        for (int x = x0; x <= x1; ++x) {
+          const int p = (y - ty0) * tw + (x - tx0);
+          if (k >= lst[p]) continue;
           const float dx = ((float)x + 0.5f) - g.mx;
           const float d2 = (g.ca * dx * dx + cdy) + g.cb2 * dx * dy;
-          const bool live = (k < Lr[x]) & (d2 <= g.d2m);
-          const float Gv = fast_exp(-0.5f * d2);
+          if (!(d2 <= g.d2m)) continue;
+          const float Gv = std::exp(-0.5f * d2);
           const float raw = g.o * Gv;
-          const float a = live ? std::min(ALPHA_MAX, raw) : 0.f;
-          const float inv = 1.f / (1.f - a);
-          const float Ti = Tr[x] * inv;  // transmittance in front of this Gaussian
+          const float a = std::min(ALPHA_MAX, raw);
+          const float om = 1.f - a;
+          const float inv = 1.f / om;
+          const float Ti = T[p] * inv;  // transmittance in front of this Gaussian
           const float w = a * Ti;
-          nany += live ? 1 : 0;
-          d_r += grr[x] * w;
-          d_g += ggr[x] * w;
-          d_b += gbr[x] * w;
-          d_z += gdr[x] * w;
-          float dLda = grr[x] * (g.r * Ti - Rrr[x] * inv) + ggr[x] * (g.g * Ti - Rgr[x] * inv) +
-                       gbr[x] * (g.b * Ti - Rbr[x] * inv) + gdr[x] * (g.z * Ti - RDr[x] * inv) +
-                       gar[x] * Tfr[x] * inv;
-          Rrr[x] += w * g.r;
-          Rgr[x] += w * g.g;
-          Rbr[x] += w * g.b;
-          RDr[x] += w * g.z;
-          Tr[x] = Ti;
-          dLda = (live & (raw <= ALPHA_MAX)) ? dLda : 0.f;
-          d_o += dLda * Gv;
-          const float dd2 = dLda * (-0.5f * raw);
-          d_mx -= dd2 * (2.f * g.ca * dx + g.cb2 * dy);
-          d_my -= dd2 * (g.cb2 * dx + 2.f * g.cc * dy);
-          d_ca += dd2 * dx * dx;
-          d_cb += dd2 * 2.f * dx * dy;
-          d_cc += dd2 * dy * dy;
+          any = true;
+          d_r += gr[p] * w;
+          d_g += gg[p] * w;
+          d_b += gb[p] * w;
+          d_z += gd[p] * w;
+          const float dLda = gr[p] * (g.r * Ti - Rr[p] * inv) + gg[p] * (g.g * Ti - Rg[p] * inv) +
+                             gb[p] * (g.b * Ti - Rb[p] * inv) + gd[p] * (g.z * Ti - RD[p] * inv) +
+                             ga[p] * Tfin[p] * inv;
+          Rr[p] += w * g.r;
+          Rg[p] += w * g.g;
+          Rb[p] += w * g.b;
+          RD[p] += w * g.z;
+          T[p] = Ti;
+          if (raw <= ALPHA_MAX) {
+            d_o += dLda * Gv;
+            const float dd2 = dLda * (-0.5f * raw);
+            d_mx -= dd2 * (2.f * g.ca * dx + g.cb2 * dy);
+            d_my -= dd2 * (g.cb2 * dx + 2.f * g.cc * dy);
+            d_ca += dd2 * dx * dx;
+            d_cb += dd2 * 2.f * dx * dy;
+            d_cc += dd2 * dy * dy;
+          }
         }
       }
-      const bool any = nany > 0;
       if (any) {
         float* o = buf + ((int64_t)c * N + gi) * 10;
         o[0] += d_mx; o[1] += d_my; o[2] += d_ca; o[3] += d_cb; o[4] += d_cc;
         o[5] += d_o; o[6] += d_r; o[7] += d_g; o[8] += d_b; o[9] += d_z;
       }
     }
-  }
+  });
   auto out = torch::empty({C, N, 10}, torch::TensorOptions().dtype(torch::kFloat32));
   float* po = out.data_ptr<float>();
-  at::parallel_for(0, gsize, 1 << 14, [&](int64_t b, int64_t e) {
-    for (int64_t i = b; i < e; ++i) {
+  const int64_t rchunk = 1 << 16;
+  parallel_items((gsize + rchunk - 1) / rchunk, nthreads, [&](int64_t ci, int) {
+    for (int64_t i = ci * rchunk, e = std::min(gsize, i + rchunk); i < e; ++i) {
       float s = 0.f;
       for (int th = 0; th < nthreads; ++th) s += bufs[(int64_t)th * gsize + i];
       po[i] = s;

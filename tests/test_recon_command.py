@@ -1,0 +1,50 @@
+"""`t2bs reconstruct` end to end on a tiny project: outputs, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from t2bs.errors import UserError
+from t2bs.geometry.io import load_mesh, save_mesh
+from t2bs.project import Project
+from t2bs.recon.commands import list_videos, reconstruct_video
+from t2bs.recon.config import preset
+from t2bs.video.grid import save_grid
+
+from test_recon import sphere_mesh, splat_grid
+
+
+def test_reconstruct_writes_outputs_and_resumes(tmp_path):
+    mesh = sphere_mesh(1)
+    v = mesh.vertices
+    frames = np.stack([v, v + [0.02, 0.0, 0.0], v + [0.04, 0.01, 0.0]]).astype(np.float32)
+    grid, _ = splat_grid(mesh, frames, size=32, views=3)
+    project = Project(tmp_path / "proj")
+    save_mesh(mesh, project.mesh_path)
+    save_grid(grid, project.path("videos", "smile-s0"))
+    cfg = preset("quick", resolution=32, static_iters=5, iterations=12, global_iters=4, num_control_points=8,
+                 checkpoint_every=5, perceptual="none")
+    out, ran = reconstruct_video(project, project.path("videos", "smile-s0"), cfg, progress=False)
+    assert ran
+    for name in ("vertices.npy", "animation.glb", "state.pt", "preview.mp4", "metrics.json", "done.json"):
+        assert (out / name).exists(), name
+    assert not (out / "checkpoint.pt").exists()
+    verts = np.load(out / "vertices.npy")
+    assert verts.shape == (3, mesh.num_vertices, 3) and np.isfinite(verts).all()
+    assert np.allclose(verts[0], mesh.vertices, atol=1e-5)  # frame 0 anchored to the rest pose
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["perceptual_loss"] == "none" and "p2p_moving" in metrics["geometry"]
+    anim = load_mesh(out / "animation.glb")
+    assert len(anim.morph_targets) == 3
+    assert np.allclose(anim.vertices + anim.morph_targets["frame0002"], verts[2], atol=1e-4)
+    # Unchanged inputs: skipped. A missing done.json (a killed run): redone.
+    assert reconstruct_video(project, project.path("videos", "smile-s0"), cfg, progress=False)[1] is False
+    (out / "done.json").unlink()
+    assert reconstruct_video(project, project.path("videos", "smile-s0"), cfg, progress=False, preview=False)[1] is True
+    with pytest.raises(UserError, match="unknown video id"):
+        list_videos(project, ["nope"])
+    with pytest.raises(UserError, match="unknown method"):
+        preset("quick", method="bogus")
