@@ -146,7 +146,7 @@ def test_global_stage_recovers_known_rigid_motion():
     rot = roma.rotvec_to_rotmat(torch.tensor(rv)).numpy()
     frames = np.stack([mesh.vertices, mesh.vertices @ rot.T + tr]).astype(np.float32)
     grid, static = splat_grid(mesh, frames)
-    cfg = preset("quick", resolution=40, static_iters=0, iterations=150, global_iters=150, num_control_points=16,
+    cfg = preset("quick", face_gaussians=False, resolution=40, static_iters=0, iterations=150, global_iters=150, num_control_points=16,
                  batch_size=4, canonical_fraction=0.3, perceptual="none", lr_global=1e-2)
     from t2bs.recon.vcdgs import reconstruct_grid
 
@@ -168,7 +168,7 @@ def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
     w = np.clip(v[:, 1] / 0.3, 0, 1)[:, None]
     frames = np.stack([v, v + w * np.array([0.1, 0.0, 0.0])]).astype(np.float32)
     grid, static = splat_grid(mesh, frames, size=64)
-    cfg = preset("quick", resolution=64, static_iters=0, iterations=300, global_iters=0, num_control_points=32,
+    cfg = preset("quick", face_gaussians=False, resolution=64, static_iters=0, iterations=300, global_iters=0, num_control_points=32,
                  batch_size=4, perceptual="none", method="no_global")
     from t2bs.recon.vcdgs import evaluate_image_loss, reconstruct_grid
 

@@ -22,7 +22,10 @@ class VCDGSConfig:
     static_iters: int = 150  # Adam steps fitting scale/orientation/colour to renders of the static mesh
     static_lr: float = 0.01  # learning rate of that fit (log-scales, quaternions, colours)
     static_views_per_iter: int = 3  # views rendered per static-fit step
+    face_gaussians: bool = True  # also one Gaussian per triangle, rebuilt from its deformed corners (covers faces
+    #   that open up, e.g. a mouth; sharper silhouettes); outputs stay per vertex
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
+    static_fit_colors: bool = False  # also fit colours (else the texture's; hidden Gaussians would get painted)
     debias_static: bool = True  # add the rest-pose residual (splats - mesh render, per view) to the targets (vcdgs.debias_targets)
     static_shading: str = "auto"  # mesh shading for the static fit: auto (the grid's, from its meta) | unlit | lambert
     # --- control points (appendix) ---

@@ -162,9 +162,14 @@ class VCDGSModel(nn.Module):
     Gaussians of a batch of (view, time) pairs."""
 
     def __init__(self, means, quats, log_scales, colors, cp_positions, neighbours, weights, views: int, frames: int,
-                 canonical_view: int, cfg):
+                 canonical_view: int, cfg, faces=None, face_colors=None, face_log_scale=None):
         super().__init__()
         f32 = torch.float32
+        # Face Gaussians (gaussians.face_gaussians): rebuilt from the deformed vertices, rendered only.
+        self.register_buffer("faces", None if faces is None else torch.as_tensor(faces, dtype=torch.int64))  # [F, 3]
+        self.register_buffer("face_colors", None if face_colors is None else torch.as_tensor(face_colors, dtype=f32))  # [F, 3]
+        self.register_buffer("face_log_scale", None if face_log_scale is None else torch.as_tensor(face_log_scale, dtype=f32))  # [F]
+        self.flatness = cfg.flatness
         self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
         self.register_buffer("quats", torch.as_tensor(quats, dtype=f32))  # [N, 4] XYZW
         self.register_buffer("log_scales", torch.as_tensor(log_scales, dtype=f32))  # [N, 3]
@@ -224,5 +229,14 @@ class VCDGSModel(nn.Module):
             log_s = log_s + ds
             q = roma.quat_product(q, roma.rotvec_to_unitquat(dr))
             offsets = (dc, ds, dr)
-        return {"means": x, "quats": q, "scales": log_s.exp(), "colors": col.clamp(0.0, 1.0),
+        scales, col = log_s.exp(), col.clamp(0.0, 1.0)
+        splats = (x, q, scales, col)
+        if self.faces is not None:
+            from t2bs.recon.gaussians import with_faces
+
+            fcol = self.face_colors[None].expand(len(t_idx), -1, -1)
+            if offsets is not None:  # faces take the mean colour offset of their corners
+                fcol = fcol + offsets[0][:, self.faces].mean(2)
+            splats = with_faces(x, q, scales, col, self.faces, fcol.clamp(0.0, 1.0), self.face_log_scale, self.flatness)
+        return {"means": x, "quats": q, "scales": scales, "colors": col, "splats": splats,
                 "shared": shared, "residual": res, "g_shared": g_shared, "g_residual": g_res, "offsets": offsets}

@@ -29,7 +29,44 @@ class StaticGaussians:
     quats: np.ndarray  # [N, 4] float32 XYZW (roma convention)
     log_scales: np.ndarray  # [N, 3] float32 log standard deviations (tangent, tangent, normal)
     colors: np.ndarray  # [N, 3] float32 in [0, 1]
+    faces: np.ndarray | None = None  # [F, 3] int64 triangles carrying one face Gaussian each (None = vertices only)
+    face_colors: np.ndarray | None = None  # [F, 3] float32 colour of each face Gaussian
+    face_log_scale: np.ndarray | None = None  # [F] float32 log multiplier of each face Gaussian's size
     fit_loss: float = float("nan")  # final L1 of the static fit (0..1 image units)
+
+    def tensors(self, device="cpu") -> dict:
+        f = None if self.faces is None else torch.as_tensor(self.faces, dtype=torch.int64, device=device)
+        opt = (lambda a: None if a is None else torch.as_tensor(a, dtype=torch.float32, device=device))
+        return {"faces": f, "face_colors": opt(self.face_colors), "face_log_scale": opt(self.face_log_scale)}
+
+
+def face_gaussians(x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One Gaussian per triangle, built from the (deformed) vertex positions each time.
+
+    x [B, N, 3], faces [F, 3], face_log_scale [F] -> means [B, F, 3] (centroids), quats [B, F, 4]
+    XYZW (axes: first edge, in-plane normal to it, face normal) and scales [B, F, 3] (the spread of
+    the triangle's corners along the two in-plane axes, x exp(face_log_scale); normal axis =
+    flatness x the smaller). They stretch and turn with their triangle, so a face that opens
+    up (a mouth, an eyelid) stays covered: one Gaussian per vertex alone leaves it empty.
+    """
+    import roma
+
+    tri = x[:, faces]  # [B, F, 3, 3]
+    c = tri.mean(2)
+    e1 = tri[:, :, 1] - tri[:, :, 0]
+    e2 = tri[:, :, 2] - tri[:, :, 0]
+    n = torch.cross(e1, e2, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    u = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w = torch.cross(n, u, dim=-1)
+    rot = torch.stack([u, w, n], dim=-1)  # [B, F, 3, 3] columns = local axes
+    d = tri - c[:, :, None]  # [B, F, 3, 3]
+    su = ((d * u[:, :, None]).sum(-1) ** 2).mean(-1).clamp_min(1e-12).sqrt()  # [B, F]
+    sw = ((d * w[:, :, None]).sum(-1) ** 2).mean(-1).clamp_min(1e-12).sqrt()
+    k = face_log_scale.exp()[None]
+    scales = torch.stack([su * k, sw * k, flatness * torch.minimum(su, sw) * k], -1).clamp_min(1e-6)
+    return c, roma.rotmat_to_unitquat(rot), scales
 
 
 def camera_tensors(cameras: list[Camera], device="cpu") -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,7 +100,18 @@ def render(means, quats_xyzw, scales, colors, viewmats, ks, width: int, height: 
                                    background=bg, backend="reference")
 
 
-def init_static_gaussians(mesh: Mesh, flatness: float = 0.25) -> StaticGaussians:
+def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale, flatness: float = 0.25):
+    """Append the face Gaussians (if any) to per-vertex ones; every tensor [B, N, ...] -> [B, N + F, ...].
+
+    ``face_colors`` is [F, 3] or [B, F, 3]."""
+    if faces is None:
+        return means, quats, scales, colors
+    fm, fq, fs = face_gaussians(means, faces, face_log_scale, flatness)
+    fc = face_colors if face_colors.dim() == 3 else face_colors[None].expand(means.shape[0], -1, -1)
+    return (torch.cat([means, fm], 1), torch.cat([quats, fq], 1), torch.cat([scales, fs], 1), torch.cat([colors, fc], 1))
+
+
+def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True) -> StaticGaussians:
     """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length."""
     v = mesh.vertices.astype(np.float64)
     f = mesh.faces.astype(np.int64)
@@ -81,13 +129,24 @@ def init_static_gaussians(mesh: Mesh, flatness: float = 0.25) -> StaticGaussians
     log_scales = np.log(np.stack([s, s, flatness * s], 1))
     normals = torch.as_tensor(mesh.vertex_normals(), dtype=torch.float32)
     quats = quat_from_normals(normals).numpy()
+    colors = mesh.vertex_rgb().astype(np.float32)
+    faces = face_colors = face_log_scale = None
+    if with_face_gaussians:
+        faces = mesh.faces.astype(np.int64)
+        if mesh.texture is not None and mesh.uv is not None:
+            from t2bs.geometry.mesh import sample_texture
+
+            face_colors = sample_texture(mesh.texture, mesh.uv[faces].mean(1))
+        else:
+            face_colors = colors[faces].mean(1)
+        face_log_scale = np.zeros(len(faces), np.float32)
     return StaticGaussians(mesh.vertices.astype(np.float32), quats.astype(np.float32), log_scales.astype(np.float32),
-                           mesh.vertex_rgb().astype(np.float32))
+                           colors, faces, face_colors.astype(np.float32) if face_colors is not None else None, face_log_scale)
 
 
 def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.ndarray | None, cameras: list[Camera],
                          iters: int = 150, lr: float = 0.01, views_per_iter: int = 3, seed: int = 0,
-                         device: str = "cpu", progress: bool = False) -> StaticGaussians:
+                         device: str = "cpu", progress: bool = False, fit_colors: bool = False) -> StaticGaussians:
     """Fit scales, orientations and colours to ``targets`` [C, H, W, 3] float 0..1 (renders of the
     static mesh from ``cameras``), ``masks`` [C, H, W] float or None. Positions stay fixed."""
     if iters <= 0:
@@ -100,7 +159,16 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
     log_s = torch.nn.Parameter(torch.as_tensor(gs.log_scales, device=dev).clone())
     quats = torch.nn.Parameter(torch.as_tensor(gs.quats, device=dev).clone())
     col_logit = torch.nn.Parameter(torch.logit(torch.as_tensor(gs.colors, device=dev).clamp(0.02, 0.98)))
-    opt = torch.optim.Adam([{"params": [log_s, quats], "lr": lr}, {"params": [col_logit], "lr": 2 * lr}])
+    # Colours stay the texture's by default (the paper fits scale and orientation only): fitting
+    # them would paint hidden Gaussians (the mouth interior) with the colour of what covers them.
+    params = [{"params": [log_s, quats], "lr": lr}] + ([{"params": [col_logit], "lr": 2 * lr}] if fit_colors else [])
+    faces = None
+    if gs.faces is not None:
+        faces = torch.as_tensor(gs.faces, dtype=torch.int64, device=dev)
+        fcol_logit = torch.nn.Parameter(torch.logit(torch.as_tensor(gs.face_colors, device=dev).clamp(0.02, 0.98)))
+        flog = torch.nn.Parameter(torch.as_tensor(gs.face_log_scale, device=dev).clone())
+        params += [{"params": [flog], "lr": lr}] + ([{"params": [fcol_logit], "lr": 2 * lr}] if fit_colors else [])
+    opt = torch.optim.Adam(params)
     tgt = torch.as_tensor(targets, dtype=torch.float32, device=dev)
     msk = None if masks is None else torch.as_tensor(masks, dtype=torch.float32, device=dev)
     vm, ks = camera_tensors(cameras, dev)
@@ -111,7 +179,10 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
     for _ in bar:
         idx = torch.randperm(c, generator=gen)[:min(views_per_iter, c)].to(dev)
         q = quats / quats.norm(dim=-1, keepdim=True)
-        out = render(means, q, log_s.exp(), torch.sigmoid(col_logit), vm[idx], ks[idx], w, h)
+        g = (means[None], q[None], log_s.exp()[None], torch.sigmoid(col_logit)[None])
+        if faces is not None:
+            g = with_faces(*g, faces, torch.sigmoid(fcol_logit), flog)
+        out = render(g[0][0], g[1][0], g[2][0], g[3][0], vm[idx], ks[idx], w, h)
         loss = (out["rgb"] - tgt[idx]).abs().mean()
         if msk is not None:
             loss = loss + 0.5 * (out["alpha"][..., 0] - msk[idx]).abs().mean()
@@ -120,9 +191,15 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
         opt.step()
         with torch.no_grad():  # keep splats from growing into blobs or vanishing
             log_s.clamp_(min=float(np.log(1e-4)), max=float(np.log(0.05)))
+            if faces is not None:
+                flog.clamp_(-2.0, 1.0)
         last = float(loss.detach())
         bar.set_postfix(loss=f"{last:.4f}")
     with torch.no_grad():
         q = quats / quats.norm(dim=-1, keepdim=True)
+        fc = fl = None
+        if faces is not None:
+            fc = torch.sigmoid(fcol_logit).cpu().numpy().astype(np.float32)
+            fl = flog.detach().clamp(-2.0, 1.0).cpu().numpy().astype(np.float32)
         return StaticGaussians(gs.means, q.cpu().numpy().astype(np.float32), log_s.cpu().numpy().astype(np.float32),
-                               torch.sigmoid(col_logit).cpu().numpy().astype(np.float32), last)
+                               torch.sigmoid(col_logit).cpu().numpy().astype(np.float32), gs.faces, fc, fl, last)

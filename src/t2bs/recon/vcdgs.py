@@ -37,7 +37,7 @@ from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import VCDGSConfig
 from t2bs.recon.control_points import build_control_points
 from t2bs.recon.deform import VCDGSModel
-from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render
+from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render, with_faces
 from t2bs.recon.losses import PerceptualLoss, image_loss
 
 
@@ -123,26 +123,30 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
     view of ``data`` (made with the mesh renderer when None). With ``cfg.debias_static`` the
     per-view difference between the fitted splats and these renders is stored in
     ``data.bias_rgb`` / ``data.bias_alpha`` (see ``debias_targets``)."""
-    gs = init_static_gaussians(mesh, cfg.flatness)
+    gs = init_static_gaussians(mesh, cfg.flatness, cfg.face_gaussians)
     if cfg.static_iters > 0 or cfg.debias_static:
         if static_targets is None:
             static_targets = static_mesh_targets(mesh, data.cameras, cfg.static_shading)
         rgb, mask = static_targets
         tv = data.train_views
         gs = fit_static_gaussians(gs, rgb[tv], mask[tv], [data.cameras[v] for v in tv], cfg.static_iters, cfg.static_lr,
-                                  cfg.static_views_per_iter, cfg.seed, device=_device(cfg).type, progress=progress)
+                                  cfg.static_views_per_iter, cfg.seed, device=_device(cfg).type, progress=progress,
+                                  fit_colors=cfg.static_fit_colors)
         if cfg.debias_static:
             vm, ks = camera_tensors(data.cameras)
             w, h = data.size
             with torch.no_grad():
-                out = render(torch.as_tensor(gs.means), torch.as_tensor(gs.quats), torch.as_tensor(gs.log_scales).exp(),
-                             torch.as_tensor(gs.colors), vm, ks, w, h)
+                ft = gs.tensors()
+                sp = with_faces(torch.as_tensor(gs.means)[None], torch.as_tensor(gs.quats)[None],
+                                torch.as_tensor(gs.log_scales).exp()[None], torch.as_tensor(gs.colors)[None],
+                                ft["faces"], ft["face_colors"], ft["face_log_scale"], cfg.flatness)
+                out = render(sp[0][0], sp[1][0], sp[2][0], sp[3][0], vm, ks, w, h)
             data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
             data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
     cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
                                seed=cfg.seed)
     model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
-                       data.views, data.frames, data.canonical_view, cfg)
+                       data.views, data.frames, data.canonical_view, cfg, gs.faces, gs.face_colors, gs.face_log_scale)
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
     p = cps.positions
     spacing = float(np.median(np.linalg.norm(p[:, None] - p[None], axis=-1)[np.arange(len(p))[:, None], cps.cp_neighbours][:, 0])) \
@@ -260,7 +264,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         v_idx, t_idx = _sample(gen, data, cfg.batch_size, cfg.canonical_fraction)
         v_idx, t_idx = v_idx.to(dev), t_idx.to(dev)
         out = model(v_idx, t_idx, refine=joint)
-        r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
+        r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
         tgt, msk = debias_targets(data, v_idx, t_idx)
         terms = image_loss(r, tgt.to(dev), None if msk is None else msk.to(dev), perceptual, cfg)
         img = sum(terms.values()).detach()
@@ -295,6 +299,17 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     return history
 
 
+def static_splats(model: VCDGSModel, batch: int) -> dict:
+    """The rest-pose Gaussians (vertex + face), repeated ``batch`` times, as ``model.forward`` returns them."""
+    from t2bs.recon.gaussians import with_faces
+
+    x, q = model.means[None].expand(batch, -1, -1), model.quats[None].expand(batch, -1, -1)
+    s, c = model.log_scales.exp()[None].expand(batch, -1, -1), model.colors[None].expand(batch, -1, -1)
+    if model.faces is None:
+        return {"splats": (x, q, s, c)}
+    return {"splats": with_faces(x, q, s, c, model.faces, model.face_colors, model.face_log_scale, model.flatness)}
+
+
 @torch.no_grad()
 def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, deformed: bool = True) -> float:
     """Mean Huber image loss over every training (view, time) pair (no RefineMLP)."""
@@ -308,9 +323,9 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
             v_idx = torch.full_like(t_idx, v)
             if deformed:
                 out = model(v_idx, t_idx, refine=False)
-                r = render(out["means"], out["quats"], out["scales"], out["colors"], vm[v_idx], ks[v_idx], w, h)
             else:
-                r = render(model.means, model.quats, model.log_scales.exp(), model.colors, vm[v_idx], ks[v_idx], w, h)
+                out = static_splats(model, len(t_idx))
+            r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
             tgt = debias_targets(data, v_idx, t_idx)[0].to(dev)
             total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.huber_delta)) * len(t_idx)
             count += len(t_idx)

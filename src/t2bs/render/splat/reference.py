@@ -67,13 +67,10 @@ def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, wid
     ([C, N, ...]); opacities/colors are [C, N(, 3)]. Written with element-wise ops on small
     tensors (no batched 3x3 matmuls) because this runs thousands of times per fit.
     """
-    C = viewmats.shape[0]
-
     def shared(x):  # [C, N, ...] broadcast view of one set -> [N, ...] (compute once, not C times)
         return x[0] if x.dim() == 3 and (x.shape[0] == 1 or x.stride(0) == 0) else x
 
     means, quats, scales = shared(means), shared(quats), shared(scales)
-    N = means.shape[-2]
     R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, None, :3, 3]  # [C, 1, 3]
     p_cam = torch.matmul(means, R.transpose(-1, -2)) + t  # [C, N, 3]
