@@ -25,7 +25,7 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
     project = Project(tmp_path / "proj")
     save_mesh(mesh, project.mesh_path)
     save_grid(grid, project.path("videos", "smile-s0"))
-    cfg = preset("quick", face_gaussians=False, resolution=32, static_iters=5, iterations=12, global_iters=4, num_control_points=8,
+    cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=32, static_iters=5, iterations=12, global_iters=4, num_control_points=8,
                  checkpoint_every=5, perceptual="none")
     out, ran = reconstruct_video(project, project.path("videos", "smile-s0"), cfg, progress=False)
     assert ran

@@ -255,7 +255,7 @@ def test_gsplat_matches_cpu():
 
 
 def test_bench_rejects_unknown_case():
-    from t2bs.render.splat.bench import bench_raster_command
+    from t2bs.eval.bench_raster import bench_raster_command
 
     with pytest.raises(UserError, match="unknown case"):
         bench_raster_command(cases="a,z")

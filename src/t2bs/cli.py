@@ -45,7 +45,8 @@ from t2bs.character import commands as _character  # noqa: E402
 app.command("character")(_character.character_command)
 app.command("gallery")(_character.gallery_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
-from t2bs.render.splat.bench import bench_raster_command  # noqa: E402
+from t2bs.eval.bench_raster import bench_raster_command  # noqa: E402
+
 bench_app.command("raster")(bench_raster_command)
 from t2bs.eval.bench_vcdgs import bench_vcdgs_command  # noqa: E402
 

@@ -19,14 +19,14 @@ class VCDGSConfig:
     resolution: int = 128  # training image size (longer side, px); the rasterizer cost grows with it
     holdout_views: tuple[int, ...] = ()  # views never trained on (the benchmark renders them for PSNR/SSIM)
     # --- static Gaussians (one per mesh vertex) ---
-    static_iters: int = 150  # Adam steps fitting scale/orientation/colour to renders of the static mesh
+    static_iters: int = 100  # Adam steps fitting scale/orientation/colour to renders of the static mesh
     static_lr: float = 0.01  # learning rate of that fit (log-scales, quaternions, colours)
     static_views_per_iter: int = 3  # views rendered per static-fit step
     face_gaussians: bool = True  # also one Gaussian per triangle, rebuilt from its deformed corners (covers faces
     #   that open up, e.g. a mouth; sharper silhouettes); outputs stay per vertex
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
     static_fit_colors: bool = False  # also fit colours (else the texture's; hidden Gaussians would get painted)
-    debias_static: bool = True  # add the rest-pose residual (splats - mesh render, per view) to the targets (vcdgs.debias_targets)
+    debias_static: bool = False  # add the rest-pose residual (splats - mesh render, per view) to the targets (vcdgs.debias_targets)
     static_shading: str = "auto"  # mesh shading for the static fit: auto (the grid's, from its meta) | unlit | lambert
     # --- control points (appendix) ---
     num_control_points: int = 400  # k; the paper uses 2000
@@ -45,8 +45,8 @@ class VCDGSConfig:
     time_freqs: int = 5  # Fourier frequencies of normalised time
     view_freqs: int = 3  # Fourier frequencies of the normalised view index
     # --- optimisation ---
-    iterations: int = 900  # total steps (global warm-up included)
-    global_iters: int = 150  # warm-up steps that fit only the global SE(3) per (v, t) (paper: "first fit the global transformation")
+    iterations: int = 400  # total steps (global warm-up included)
+    global_iters: int = 100  # warm-up steps that fit only the global SE(3) per (v, t) (paper: "first fit the global transformation")
     batch_size: int = 4  # (v, t) pairs rendered per step
     canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)
     lr_deform: float = 2e-3  # Adam lr of DeformMLP / per-Gaussian MLP (decays x lr_final_ratio)
@@ -56,14 +56,16 @@ class VCDGSConfig:
     # --- loss (eq. 2: Huber + perceptual) ---
     huber_delta: float = 0.1  # Huber transition on RGB differences in 0..1
     pyramid_levels: int = 3  # Huber also on 2x, 4x, ... average-pooled images: widens the basin of large motions
-    mask_weight: float = 0.5  # Huber between rendered alpha and the grid's foreground masks (when the grid has masks)
+    mask_weight: float = 1.0  # Huber between rendered alpha and the grid's foreground masks (when the grid has masks)
+    silhouette_band: int = 1  # px: silhouettes matched against the mask dilated this much (splat tails), see losses.py
     perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"
     lpips_weights: str = ""  # path to an lpips-style state dict (AlexNet features + lin layers), see losses.py
     # --- regularisers (documented in vcdgs.py) ---
-    rigidity_weight: float = 0.02  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
+    rigidity_weight: float = 0.2  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
+    local_weight: float = 0.02  # L1-like prior on the local (DeformMLP) motion: facial motion is sparse, the rest follows T_global
     temporal_weight: float = 0.02  # adjacent frames' control-point motion is smooth
-    view_residual_weight: float = 0.05  # view-dependent part of the deformation stays small
+    view_residual_weight: float = 1.0  # view-dependent part of the deformation stays small
     refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
     # --- ablations ---
     method: str = "full"  # full | no_view | no_refine | no_lbs | no_global

@@ -52,12 +52,14 @@ def preview_frames(mesh: Mesh, vertices: np.ndarray, grid, side_view: int, size:
     cams = [c.resized(*sz) for c in cams]
     rows = []
     inputs = [resize_stack(grid.frames[v], sz).numpy() for v in (grid.canonical_view, side_view)]  # [T, h, w, 3]
+    shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))  # the grid renderer's, if known
+    shading = shading if shading in ("unlit", "lambert") else "lambert"
     with MeshRenderer() as r:
         for t in range(vertices.shape[0]):
             tiles = []
             for j, cam in enumerate(cams):
                 tiles.append(inputs[j][t])
-                tiles.append(r.render(mesh, cam, vertices=vertices[t], shading="lambert").rgb)
+                tiles.append(r.render(mesh, cam, vertices=vertices[t], shading=shading).rgb)
             rows.append(np.concatenate(tiles, axis=1))
     return (np.clip(np.stack(rows), 0, 1) * 255 + 0.5).astype(np.uint8)
 

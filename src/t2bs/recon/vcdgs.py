@@ -1,7 +1,7 @@
 """VCDGS training (paper §3.2): register the static character to a multi-view video grid.
 
-Schedule: (1) fit the static Gaussians' scale/orientation/colour to renders of the static mesh
-(gaussians.py); (2) global-only warm-up: only T_global(v, t) is optimised (the paper: "we first
+Schedule: (1) fit the static Gaussians' scale/orientation (one per vertex plus one per face,
+texture colours) to renders of the static mesh (gaussians.py); (2) global-only warm-up: only T_global(v, t) is optimised (the paper: "we first
 fit the global transformation"); (3) joint training of T_global, DeformMLP and RefineMLP. Each
 step renders a batch of random (view, time) pairs (a share of them at the canonical view,
 which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
@@ -14,7 +14,13 @@ do not depend on the character's size or on k):
 - temporal smoothness: control-point positions at t and t+1 (shared deformation) stay close;
 - view residual: the view-dependent parts (DeformMLP residual and global residual) stay small,
   so they explain per-view distortions only, never the shared motion;
-- refine: RefineMLP offsets stay small, so appearance changes do not replace geometry.
+- refine: RefineMLP offsets stay small, so appearance changes do not replace geometry;
+- local (sparsity): an L1-like penalty on the DeformMLP's shared motion, so that regions the
+  images cannot see moving (textureless skin is only observable at silhouettes, and unlit
+  renders carry no shading) follow the global head motion instead of drifting.
+Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
+residual correction (debias_static) exists but is off by default: it left ghost edges at moving
+silhouettes and did not help in our runs.
 
 Resume: a checkpoint (model + optimiser + step + RNG) is written every ``checkpoint_every``
 steps next to the outputs, tagged with the job key; a re-run with the same key continues
@@ -23,9 +29,8 @@ from it.
 
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +53,7 @@ class TrainData:
     cameras: list[Camera]  # [V] resized to the training resolution
     canonical_view: int  # the paper's v = 0
     train_views: list[int]  # views used for training (holdout removed)
+    shading: str = "lambert"  # the grid renderer's shading (from its meta), for the static fit's mesh renders
     bias_rgb: torch.Tensor | None = None  # [V, H, W, 3] splat - mesh render of the rest pose (debias_targets)
     bias_alpha: torch.Tensor | None = None  # [V, H, W] same for alpha vs mask
 
@@ -103,7 +109,9 @@ def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
 
         raise UserError(f"the canonical view {grid.canonical_view} cannot be held out")
     train_views = [v for v in range(grid.num_views) if v not in hold]
-    return TrainData(images, masks, cams, int(grid.canonical_view), train_views)
+    shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
+    return TrainData(images, masks, cams, int(grid.canonical_view), train_views,
+                     shading if shading in ("unlit", "lambert") else "lambert")
 
 
 def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambert") -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +134,8 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
     gs = init_static_gaussians(mesh, cfg.flatness, cfg.face_gaussians)
     if cfg.static_iters > 0 or cfg.debias_static:
         if static_targets is None:
-            static_targets = static_mesh_targets(mesh, data.cameras, cfg.static_shading)
+            shading = data.shading if cfg.static_shading == "auto" else cfg.static_shading
+            static_targets = static_mesh_targets(mesh, data.cameras, shading)
         rgb, mask = static_targets
         tv = data.train_views
         gs = fit_static_gaussians(gs, rgb[tv], mask[tv], [data.cameras[v] for v in tv], cfg.static_iters, cfg.static_lr,
@@ -191,6 +200,12 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
         pred = torch.einsum("bkij,kmj->bkmi", rot, p[nb] - p[:, None]) + p[:, None] + tr[:, :, None]  # [B, K, m, 3]
         actual = p[nb] + tr[:, nb]  # [B, K, m, 3]
         terms["rigidity"] = cfg.rigidity_weight * ((pred - actual) ** 2).sum(-1).mean() / s2
+    if cfg.local_weight > 0:
+        # Sparse local motion: without it, textureless skin (unobservable except at silhouettes)
+        # drifts freely; with it, whatever the images do not demand follows the global motion.
+        sh = out["shared"]
+        mag = (sh[..., 3:] ** 2).sum(-1) / s2 + (sh[..., :3] ** 2).sum(-1)
+        terms["local"] = cfg.local_weight * (mag + 1e-4).sqrt().mean()
     if cfg.temporal_weight > 0 and model.frames > 1:
         step = torch.where(t_idx < model.frames - 1, 1, -1)
         t2 = t_idx + step
@@ -284,9 +299,9 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         if step % 10 == 0 or step == cfg.iterations - 1:
             history["terms"] = {k: round(float(v.detach()), 6) for k, v in terms.items()}
             history["step"].append(step)
-            history["loss"].append(float(loss))
+            history["loss"].append(float(loss.detach()))
             history["image"].append(float(img))
-            bar.set_postfix(stage="joint" if joint else "global", loss=f"{float(loss):.4f}")
+            bar.set_postfix(stage="joint" if joint else "global", loss=f"{float(loss.detach()):.4f}")
         if checkpoint is not None and cfg.checkpoint_every and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
             from t2bs.project import atomic_path
 
@@ -336,7 +351,6 @@ def reconstruct_grid(mesh: Mesh, grid, cfg: VCDGSConfig, progress: bool = True, 
                      checkpoint: Path | None = None, key: str = "") -> ReconResult:
     """The whole VCDGS job for one grid: data, static fit, control points, training, extraction."""
     from t2bs.errors import UserError
-    from t2bs.recon.extract import canonical_vertices
 
     cfg.validate()
     if grid.gt_vertices is not None and grid.gt_vertices.shape[1] != mesh.num_vertices:
@@ -356,14 +370,9 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
 
     t0 = time.time()
     data = prepare_data(grid, cfg)
-    if cfg.static_shading == "auto":
-        shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
-        cfg = replace(cfg, static_shading=shading if shading in ("unlit", "lambert") else "lambert")
     model, _ = build_model(mesh, data, cfg, static_targets, progress)
     history = train(model, data, cfg, progress, checkpoint, key)
     verts = canonical_vertices(model)
     return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"))
 
 
-def _fmt(x: float) -> str:
-    return "nan" if not math.isfinite(x) else f"{x:.4f}"

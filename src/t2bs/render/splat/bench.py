@@ -172,13 +172,3 @@ def main(cases: str = "a,b,c", repeats: int = 5, threads: int = 2) -> dict:
               "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default (spinning)")}
     print(json.dumps(report), flush=True)
     return report
-
-
-def bench_raster_command(cases: str = "a,b,c", repeats: int = 5, threads: int = 2) -> None:
-    """Splat rasterizer: fast C++ vs autograd reference vs dense, ms per forward+backward (JSON)."""
-    from t2bs.errors import UserError
-
-    bad = [c for c in cases.split(",") if c.strip() not in CASES]
-    if bad:
-        raise UserError(f"unknown case(s) {', '.join(bad)}; choose from {', '.join(CASES)}")
-    main(cases, repeats, threads)

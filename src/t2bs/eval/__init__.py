@@ -1,0 +1,1 @@
+"""Evaluation: metrics (p2p, NC, PSNR, SSIM) and the benchmark suites."""
