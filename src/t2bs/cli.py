@@ -44,6 +44,9 @@ from t2bs.character import commands as _character  # noqa: E402
 
 app.command("character")(_character.character_command)
 app.command("gallery")(_character.gallery_command)
+from t2bs.pipeline import create_command  # noqa: E402
+
+app.command("create")(create_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
 from t2bs.eval.bench_raster import bench_raster_command  # noqa: E402
 

@@ -72,6 +72,12 @@ def create_command(
     mesh: Path = typer.Option(None, help="Bring your own mesh (character backend 'file')."),
     workers: int = typer.Option(1, help="Reconstruction jobs in parallel on this machine (process pool)."),
     ray: str = typer.Option(None, "--ray", help="Run reconstruction jobs on Ray: 'auto', 'local' or host:port."),
+    frames: int = typer.Option(0, help="Frames per video (0 = the preset's)."),
+    size: int = typer.Option(0, help="Grid frame side in pixels (0 = the preset's)."),
+    views: int = typer.Option(0, help="Orbit views (0 = the paper's 15)."),
+    defects: str = typer.Option(None, help="Simulated 4D-model defects: clean, mild, paper (default: the preset's)."),
+    iterations: int = typer.Option(0, help="VCDGS steps per video (0 = the preset's)."),
+    control_points: int = typer.Option(0, help="VCDGS control points (0 = the preset's)."),
 ) -> None:
     """Text -> animatable blendshape rig: runs every stage and writes DIR/report.md."""
     if preset not in CREATE_PRESETS:
@@ -99,10 +105,11 @@ def create_command(
     if character_backend == "file" and mesh is None:
         raise UserError("--character-backend file needs --mesh PATH")
     stage("character", character_command, prompt=prompt, out=out, backend=character_backend, seed=seed, mesh=mesh)
-    stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, defects=p.defects,
-          frames=p.frames, size=p.size, seed=seed)
-    stage("reconstruct", reconstruct_command, project_dir=out, preset_name=p.recon, seed=seed,
-          workers=workers, ray=ray)
+    grid = {"frames": frames or p.frames, "size": size or p.size, **({"views": views} if views else {})}
+    stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, defects=defects or p.defects,
+          seed=seed, **grid)
+    stage("reconstruct", reconstruct_command, project_dir=out, preset_name=p.recon, seed=seed, workers=workers,
+          ray=ray, iterations=iterations, control_points=control_points)
     stage("blendshapes", blendshapes_command, project_dir=out, components=p.components)
     stage("landmarks", landmarks_command, project_dir=out, show=True)
     report = write_report(project, prompt, preset, times)

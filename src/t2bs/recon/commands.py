@@ -15,7 +15,8 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
-from t2bs.project import Project, content_key, is_done, mark_done
+from t2bs.distributed import Job, run_jobs
+from t2bs.project import Project, content_key
 from t2bs.recon.config import METHODS, PRESETS, VCDGSConfig, preset
 
 
@@ -53,30 +54,48 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     return m
 
 
-def reconstruct_video(project: Project, grid_dir: Path, cfg: VCDGSConfig, progress: bool = True,
-                      preview: bool = True) -> tuple[Path, bool]:
-    """One VCDGS job (resumable). Returns (output folder, whether it ran)."""
+def recon_job(project: Project, grid_dir: Path, cfg: VCDGSConfig, preview: bool = True) -> Job:
+    """The job of one video: keyed by the grid, the character and the settings."""
+    key = content_key(grid_dir, project.mesh_path, cfg.to_dict())
+    return Job(key=key, name=f"recon/{grid_dir.name}", out_dir=project.path("recon", grid_dir.name),
+               fn="t2bs.recon.commands:run_recon_job",
+               kwargs={"project_dir": str(project.root), "grid_dir": str(grid_dir), "cfg": cfg.to_dict(),
+                       "preview": preview, "key": key},
+               num_gpus=1.0 if cfg.device == "cuda" else 0.0)
+
+
+def run_recon_job(staging: Path, project_dir: str, grid_dir: str, cfg: dict, preview: bool, key: str,
+                  progress: bool = True) -> dict:
+    """Executor entry point: VCDGS on one grid, outputs written into ``staging``.
+
+    The training checkpoint lives outside the per-attempt staging folder (recon/.checkpoints/,
+    named by the job key), so an attempt killed mid-training resumes where it stopped.
+    """
     from t2bs.recon.extract import write_outputs
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.video.grid import load_grid
 
-    out = project.path("recon", grid_dir.name)
-    key = content_key(grid_dir, project.mesh_path, cfg.to_dict())
-    if is_done(out, key):
-        return out, False
+    cfg = VCDGSConfig(**{**cfg, "holdout_views": tuple(cfg.get("holdout_views", ()))})
+    project = Project(project_dir)
     mesh = project.load_character()
     grid = load_grid(grid_dir)
     if grid.gt_vertices is not None and grid.gt_vertices.shape[1] != mesh.num_vertices:
         raise UserError(f"{grid_dir}: ground truth has {grid.gt_vertices.shape[1]} vertices, the character {mesh.num_vertices}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "done.json").unlink(missing_ok=True)
-    ckpt = out / "checkpoint.pt"
+    ckpt = project.path("recon", ".checkpoints", f"{Path(grid_dir).name}-{key}.pt")
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
     result = reconstruct_grid(mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key)
     metrics = job_metrics(result, mesh, grid, cfg)
-    write_outputs(out, mesh, grid, result, cfg, metrics, preview=preview)
+    write_outputs(staging, mesh, grid, result, cfg, metrics, preview=preview)
     ckpt.unlink(missing_ok=True)
-    mark_done(out, key, seconds=round(result.seconds, 2), method=cfg.method)
-    return out, True
+    return {"method": cfg.method, "train_seconds": round(result.seconds, 2)}
+
+
+def reconstruct_video(project: Project, grid_dir: Path, cfg: VCDGSConfig, progress: bool = True,
+                      preview: bool = True) -> tuple[Path, bool]:
+    """One VCDGS job in this process (resumable). Returns (output folder, whether it ran)."""
+    job = recon_job(project, grid_dir, cfg, preview)
+    job.kwargs["progress"] = progress
+    return job.out_dir, bool(run_jobs([job], desc="reconstruct"))
 
 
 def reconstruct_command(
@@ -89,12 +108,15 @@ def reconstruct_command(
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
+    seed: int = typer.Option(0, help="Seed of sampling and initialisation."),
+    workers: int = typer.Option(1, help="Videos reconstructed in parallel on this machine (process pool)."),
+    ray: str = typer.Option(None, "--ray", help="Run the jobs on Ray: 'auto', 'local' or host:port."),
 ) -> None:
     """Recover per-frame meshes from each multi-view grid with VCDGS (resumable)."""
     project = Project(project_dir)
     if not project.mesh_path.exists():
         raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
-    overrides: dict = {"method": method, "device": device}
+    overrides: dict = {"method": method, "device": device, "seed": seed}
     if iterations:
         overrides["iterations"] = iterations
         overrides["global_iters"] = min(PRESETS[preset_name].global_iters if preset_name in PRESETS else 0, iterations // 5)
@@ -105,12 +127,10 @@ def reconstruct_command(
     cfg = preset(preset_name, **overrides)
     grids = list_videos(project, videos)
     t0 = time.time()
-    done, ran = [], 0
-    for i, g in enumerate(grids):
-        print(f"[{i + 1}/{len(grids)}] {g.name}", flush=True)
-        out, did = reconstruct_video(project, g, cfg, progress=True, preview=not no_preview)
-        ran += did
-        print(f"  {'reconstructed' if did else 'up to date'}: {out}", flush=True)
-        done.append(g.name)
+    jobs = [recon_job(project, g, cfg, preview=not no_preview) for g in grids]
+    executor = "ray" if ray else ("process" if workers > 1 else "local")
+    ran = run_jobs(jobs, executor=executor, workers=workers, ray_address=ray, desc="reconstruct")
+    done = [g.name for g in grids]
+    print(f"reconstruct: {len(ran)} reconstructed, {len(jobs) - len(ran)} up to date, in {project.path('recon')}", flush=True)
     project.record_stage("recon", backend="vcdgs", config=cfg.to_dict(), preset=preset_name, videos=done,
-                         ran=ran, seconds=round(time.time() - t0, 2))
+                         ran=len(ran), executor=executor, seconds=round(time.time() - t0, 2))
