@@ -40,6 +40,7 @@ def test_create_end_to_end_then_kill_and_resume(tmp_path):
     assert report["backends"]["character"] == "file" and report["backends"]["recon"] == "vcdgs"
     assert {v["video"] for v in report["videos"]} == {"blinking-s0", "opening-the-mouth-extremely-wide-s0"}
     assert all(v["p2p_moving"] is not None for v in report["videos"])
+    assert abs(report["blendshapes"]["explained_variance_total"] - 1.0) < 1e-3  # all components kept
     assert (full / "landmarks" / "landmarks.json").exists() and (full / "report.md").exists()
 
     # Kill -9 while the first video is being reconstructed (its staging folder exists).

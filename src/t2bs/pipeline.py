@@ -143,8 +143,8 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
     if model_path.exists():
         with np.load(model_path, allow_pickle=False) as data:
             blend["components"] = int(data["basis"].shape[0])
-            if "explained_variance_ratio" in data:
-                ratio = np.asarray(data["explained_variance_ratio"], float)
+            if "explained_variance" in data:  # fraction of the captures' squared offsets per shape
+                ratio = np.asarray(data["explained_variance"], float)
                 blend["explained_variance_first10"] = [round(float(x), 4) for x in ratio[:10]]
                 blend["explained_variance_total"] = round(float(ratio.sum()), 6)
     report = {

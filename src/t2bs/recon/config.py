@@ -47,6 +47,8 @@ class VCDGSConfig:
     # --- optimisation ---
     iterations: int = 400  # total steps (global warm-up included)
     global_iters: int = 100  # warm-up steps that fit only the global SE(3) per (v, t) (paper: "first fit the global transformation")
+    global_coarse: int = 0  # coarse-to-fine warm-up: its loss starts on 2^k-downsampled images (k = global_coarse),
+    #   k decreasing linearly to 0 by the end of the warm-up (a wide basin for the head's rigid motion first)
     batch_size: int = 4  # (v, t) pairs rendered per step
     canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)
     lr_deform: float = 2e-3  # Adam lr of DeformMLP / per-Gaussian MLP (decays x lr_final_ratio)
@@ -65,6 +67,8 @@ class VCDGSConfig:
     rigidity_weight: float = 0.2  # neighbouring control-point transforms agree (ARAP-like), on |delta|^2 / diag^2
     local_weight: float = 0.02  # L1-like prior on the local (DeformMLP) motion: facial motion is sparse, the rest follows T_global
     temporal_weight: float = 0.02  # adjacent frames' control-point motion is smooth
+    global_smooth_weight: float = 0.0  # second differences over frames of the shared global motion stay small
+    #   (head motion is smooth; each frame is only seen in a few steps, so the per-frame fit is noisy); all stages
     view_residual_weight: float = 1.0  # view-dependent part of the deformation stays small
     refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
     # --- ablations ---

@@ -227,6 +227,15 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
     return terms
 
 
+def _global_smoothness(model: VCDGSModel) -> torch.Tensor:
+    """Mean squared second difference over frames of the shared global motion, as point motion
+    (rotation x mean radius) in units of the control-point spacing."""
+    g = model.global_se3.shared_table()  # [T, 6]
+    acc = g[2:] - 2 * g[1:-1] + g[:-2]
+    radius = float(model.means.norm(dim=-1).mean())
+    return ((acc[:, 3:] ** 2).sum(-1) + radius ** 2 * (acc[:, :3] ** 2).sum(-1)).mean() / model.spacing ** 2
+
+
 def _sample(gen: torch.Generator, data: TrainData, batch: int, canonical_fraction: float):
     t_idx = torch.randint(0, data.frames, (batch,), generator=gen)
     views = torch.tensor(data.train_views)
@@ -234,6 +243,32 @@ def _sample(gen: torch.Generator, data: TrainData, batch: int, canonical_fractio
     canon = torch.rand(batch, generator=gen) < canonical_fraction
     v_idx = torch.where(canon, torch.full_like(v_idx, data.canonical_view), v_idx)
     return v_idx, t_idx
+
+
+def _coarse_level(step: int, warm: int, levels: int, size: int) -> int:
+    """Downsampling exponent of the warm-up loss at ``step``: ``levels`` -> 0 linearly over the warm-up
+    (never below 16 px)."""
+    if levels <= 0 or warm <= 0:
+        return 0
+    k = int(np.ceil(levels * (1.0 - (step + 1) / warm)))
+    while k > 0 and size // (2 ** k) < 16:
+        k -= 1
+    return max(k, 0)
+
+
+def _downsample(r: dict, tgt: torch.Tensor, msk, f: int):
+    """Average-pool a render dict ([B, H, W, C]), targets and masks by ``f``."""
+    def pool(x):
+        return F.avg_pool2d(x.permute(0, 3, 1, 2), f).permute(0, 2, 3, 1)
+    r = {"rgb": pool(r["rgb"]), "alpha": pool(r["alpha"])}
+    return r, pool(tgt), None if msk is None else pool(msk[..., None])[..., 0]
+
+
+def _COARSE_CFG(cfg: VCDGSConfig) -> VCDGSConfig:
+    """The loss settings used on downsampled images: no perceptual term, no silhouette band, 2 pyramid levels."""
+    from dataclasses import replace
+
+    return replace(cfg, perceptual_weight=0.0, silhouette_band=0, pyramid_levels=min(cfg.pyramid_levels, 2))
 
 
 def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
@@ -281,8 +316,16 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         out = model(v_idx, t_idx, refine=joint)
         r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
         tgt, msk = debias_targets(data, v_idx, t_idx)
-        terms = image_loss(r, tgt.to(dev), None if msk is None else msk.to(dev), perceptual, cfg)
+        tgt, msk = tgt.to(dev), None if msk is None else msk.to(dev)
+        k = _coarse_level(step, warm, cfg.global_coarse, min(w, h)) if not joint else 0
+        if k > 0:
+            r, tgt, msk = _downsample(r, tgt, msk, 2 ** k)
+            terms = image_loss(r, tgt, msk, perceptual, _COARSE_CFG(cfg))
+        else:
+            terms = image_loss(r, tgt, msk, perceptual, cfg)
         img = sum(terms.values()).detach()
+        if cfg.global_smooth_weight > 0 and model.global_se3 is not None and model.frames > 2:
+            terms["global_smooth"] = cfg.global_smooth_weight * _global_smoothness(model)
         if joint:
             terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
         loss = sum(terms.values())
