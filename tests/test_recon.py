@@ -184,3 +184,22 @@ def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
     moving = err_static > 0.01
     assert err[moving].mean() < 0.6 * err_static[moving].mean(), (err[moving].mean(), err_static[moving].mean())
     assert err.mean() < 0.8 * err_static.mean()
+
+
+def test_time_budget_stops_after_warmup_and_coarse_levels():
+    import time
+
+    from t2bs.recon.vcdgs import _coarse_level, build_model, prepare_data, train
+
+    mesh = sphere_mesh(1)
+    frames = np.stack([mesh.vertices, mesh.vertices + 0.01]).astype(np.float32)
+    grid, static = splat_grid(mesh, frames, size=32, views=3)
+    cfg = preset("quick", face_gaussians=False, silhouette_band=0, resolution=32, static_iters=0, iterations=50, global_iters=6,
+                 num_control_points=8, batch_size=2, perceptual="none", global_coarse=2, global_smooth_weight=1.0,
+                 view_residual_static=True)
+    data = prepare_data(grid, cfg)
+    model, _ = build_model(mesh, data, cfg, static)
+    hist = train(model, data, cfg, progress=False, deadline=time.time() - 1.0)  # already past: warm-up only
+    assert hist["stopped_at_budget"] == 6 and hist["steps_run"] == 6
+    assert [_coarse_level(s, 8, 2, 128) for s in range(8)] == [2, 2, 2, 1, 1, 1, 1, 0]
+    assert _coarse_level(0, 8, 3, 32) == 1  # never below 16 px

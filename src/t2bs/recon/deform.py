@@ -82,6 +82,7 @@ class DeformMLP(nn.Module):
         self.anchor = anchor_first_frame  # shared(p, t) - shared(p, 0): frame 0 is exactly the rest pose
         self.pos_freqs, self.time_freqs, self.view_freqs = pos_freqs, time_freqs, view_freqs
         self.view_conditioned = view_conditioned
+        self.residual_static = False  # set by VCDGSModel from config.view_residual_static
         self.translation_scale = translation_scale  # outputs are O(1); scene motion is O(0.1)
         d_p, d_t, d_v = 3 * (1 + 2 * pos_freqs), 1 + 2 * time_freqs, 1 + 2 * view_freqs
         self.shared = CondMLP(d_p, d_t, 6, hidden, depth)
@@ -100,6 +101,8 @@ class DeformMLP(nn.Module):
         if self.residual is None or not bool(view_on.any()):
             return shared, torch.zeros_like(shared)
         ve = fourier(v[:, None], self.view_freqs)
+        if self.residual_static:  # a per-view distortion, the same at every frame
+            te = fourier(torch.zeros_like(t)[:, None], self.time_freqs)
         res = self.residual(pe, torch.cat([te, ve], -1)) * self.scale * view_on[:, None, None]
         return shared, res
 
@@ -122,6 +125,7 @@ class GlobalSE3(nn.Module):
         self.register_buffer("basis", basis)
         self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T coefficients, rotvec 3 + translation 3]
         self.residual = nn.Parameter(torch.zeros(views, frames, 6)) if view_conditioned else None
+        self.residual_static = False  # set by VCDGSModel from config.view_residual_static
 
     def shared_table(self) -> torch.Tensor:
         """[T, 6] shared motion of every frame."""
@@ -133,7 +137,10 @@ class GlobalSE3(nn.Module):
         shared = self.shared_table()[t_idx]
         if self.residual is None:
             return shared, torch.zeros_like(shared)
-        res = torch.einsum("bk,bkc->bc", self.basis[t_idx], self.residual[v_idx])
+        if self.residual_static:  # only the constant (DCT 0) coefficient: a per-view offset fixed over time
+            res = self.basis[t_idx][:, :1] * self.residual[v_idx][:, 0]
+        else:
+            res = torch.einsum("bk,bkc->bc", self.basis[t_idx], self.residual[v_idx])
         return shared, res * view_on[:, None]
 
 
@@ -182,6 +189,9 @@ class VCDGSModel(nn.Module):
         self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view,
                                 anchor_first_frame=cfg.anchor_first_frame)
         self.global_se3 = GlobalSE3(views, frames, cfg.use_view, cfg.anchor_first_frame) if cfg.use_global else None
+        self.deform.residual_static = bool(getattr(cfg, "view_residual_static", False))
+        if self.global_se3 is not None:
+            self.global_se3.residual_static = self.deform.residual_static
         self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.refine_pos_freqs, cfg.time_freqs,
                                 cfg.view_freqs) if cfg.use_refine else None
         # Fourier features of the fixed points, computed once (positions never change).

@@ -5,6 +5,11 @@ texture colours) to renders of the static mesh (gaussians.py); (2) global-only w
 fit the global transformation"); (3) joint training of T_global, DeformMLP and RefineMLP. Each
 step renders a batch of random (view, time) pairs (a share of them at the canonical view,
 which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
+Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k-downsampled
+images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
+by default (no consistent gain in our runs); config.view_residual_static (view residuals fixed
+over time) is also off: it helped under paper-like defects and hurt on clean grids. config.time_budget_s caps one reconstruction's wall
+time (quick: 260 s): past it the joint stage's schedule follows elapsed time and stops.
 
 Regularisers (joint stage; all measured in units of the control-point spacing so the weights
 do not depend on the character's size or on k):
@@ -272,8 +277,12 @@ def _COARSE_CFG(cfg: VCDGSConfig) -> VCDGSConfig:
 
 
 def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
-          checkpoint: Path | None = None, key: str = "") -> dict:
-    """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``."""
+          checkpoint: Path | None = None, key: str = "", deadline: float | None = None) -> dict:
+    """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``.
+
+    ``deadline`` (time.time() value, optional): the joint stage's learning-rate decay follows
+    max(step fraction, elapsed-time fraction) and training stops once the deadline passes
+    (the warm-up always completes)."""
     from tqdm import tqdm
 
     dev = _device(cfg)
@@ -304,9 +313,20 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
                total=cfg.iterations)
     model.train()
+    joint_start = None
+    history["steps_run"] = start
     for step in bar:
         joint = step >= warm
         frac = (step - warm) / max(cfg.iterations - warm, 1)
+        if joint and deadline is not None:
+            now = time.time()
+            if joint_start is None:
+                joint_start = now
+            if now >= deadline:
+                history["stopped_at_budget"] = step
+                break
+            frac = max(frac, (now - joint_start) / max(deadline - joint_start, 1e-6))
+        history["steps_run"] = step + 1
         for k, o in opts.items():
             base = groups[k][1]
             for g in o.param_groups:
@@ -414,7 +434,9 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
     t0 = time.time()
     data = prepare_data(grid, cfg)
     model, _ = build_model(mesh, data, cfg, static_targets, progress)
-    history = train(model, data, cfg, progress, checkpoint, key)
+    # Budget for training: what is left of time_budget_s, less a small margin for extraction.
+    deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
+    history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
     verts = canonical_vertices(model)
     return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"))
 
