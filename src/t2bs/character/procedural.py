@@ -588,16 +588,10 @@ def _build_horns(p: CharacterParams, face: _Face, head: _Part) -> list[_Part]:
         comps.append(tube(path, np.array([0.05, 0.035, 0.03]), 10))
         comps.append(_ellipsoid(base + [0, s + 0.05, 0], (0.1, 0.1, 0.1), 2))
         label = "antenna"
-    verts, faces, off = [], [], 0
-    for v, f in comps:
-        verts.append(v)
-        faces.append(f + off)
-        off += len(v)
-    v = np.concatenate(verts)
-    colors = _colors(len(v), rgb if label == "horn" else _shade(p.base_color, 0.8))
+    part = _merge_comps(label, comps, rgb if label == "horn" else _shade(p.base_color, 0.8))
     if label == "antenna":
-        colors[-len(comps[-1][0]):] = p.extra_color
-    return [_Part(label, v, np.concatenate(faces), colors)]
+        part.colors[-len(comps[-1][0]):] = p.extra_color  # the knob on top
+    return [part]
 
 
 def _build_extras(p: CharacterParams, face: _Face, head: _Part, rng: np.random.Generator) -> list[_Part]:
