@@ -208,7 +208,7 @@ def _pack_atlas(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
             rgb = m.vertex_rgb().mean(0)
             tiles.append(np.broadcast_to((rgb * 255).astype(np.uint8), (8, 8, 3)))
             uvs.append(np.full((m.num_vertices, 2), 0.5, np.float32))
-    if len({id(t) for t in tiles}) == 1 or all(t is tiles[0] or np.array_equal(t, tiles[0]) for t in tiles):
+    if all(t is tiles[0] or np.array_equal(t, tiles[0]) for t in tiles):
         return np.concatenate(uvs).astype(np.float32), np.ascontiguousarray(tiles[0])
     height = max(t.shape[0] for t in tiles)
     resized = [_resize_nearest(t, height) for t in tiles]

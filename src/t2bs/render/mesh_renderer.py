@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from t2bs.errors import UserError
-from t2bs.geometry.camera import Camera
+from t2bs.geometry.camera import CV_TO_GL, Camera
 from t2bs.geometry.mesh import Mesh, vertex_normals
 
 _VERTEX_SHADER = """
@@ -175,9 +175,7 @@ class MeshRenderer:
             index_buffer=ibo,
             index_element_size=4,
         )
-        view, proj = camera.opengl_view_projection()
-        from t2bs.geometry.camera import CV_TO_GL
-
+        _, proj = camera.opengl_view_projection()
         self.program["world_to_camera"].write(np.asarray(camera.world_to_camera, np.float32).T.tobytes())
         self.program["cv_to_clip"].write(np.asarray(proj @ CV_TO_GL, np.float32).T.tobytes())
         self.program["use_texture"].value = bool(use_texture)
