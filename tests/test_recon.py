@@ -186,7 +186,7 @@ def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
     assert err.mean() < 0.8 * err_static.mean()
 
 
-def test_time_budget_stops_after_warmup_and_coarse_levels():
+def test_time_budget_stops_and_coarse_levels():
     import time
 
     from t2bs.recon.vcdgs import _coarse_level, build_model, prepare_data, train
@@ -194,12 +194,34 @@ def test_time_budget_stops_after_warmup_and_coarse_levels():
     mesh = sphere_mesh(1)
     frames = np.stack([mesh.vertices, mesh.vertices + 0.01]).astype(np.float32)
     grid, static = splat_grid(mesh, frames, size=32, views=3)
-    cfg = preset("quick", face_gaussians=False, silhouette_band=0, resolution=32, static_iters=0, iterations=50, global_iters=6,
+    cfg = preset("quick", face_gaussians=False, silhouette_band=0, resolution=32, static_iters=0, iterations=10, global_iters=6,
                  num_control_points=8, batch_size=2, perceptual="none", global_coarse=2, global_smooth_weight=1.0,
                  view_residual_static=True)
     data = prepare_data(grid, cfg)
     model, _ = build_model(mesh, data, cfg, static)
-    hist = train(model, data, cfg, progress=False, deadline=time.time() - 1.0)  # already past: warm-up only
-    assert hist["stopped_at_budget"] == 6 and hist["steps_run"] == 6
+    hist = train(model, data, cfg, progress=False)  # no deadline: every step, warm-up then joint
+    assert hist["steps_run"] == 10 and hist["joint_from"] == 6 and "stopped_at_budget" not in hist
+    hist = train(model, data, cfg, progress=False, deadline=time.time() - 1.0)  # already past: nothing runs
+    assert hist["stopped_at_budget"] == 0 and hist["steps_run"] == 0
     assert [_coarse_level(s, 8, 2, 128) for s in range(8)] == [2, 2, 2, 1, 1, 1, 1, 0]
     assert _coarse_level(0, 8, 3, 32) == 1  # never below 16 px
+
+
+def test_schedule_compresses_warmup_and_decay_into_the_budget(monkeypatch):
+    """Under a deadline the warm-up keeps its share of the run and the joint stage the rest."""
+    from t2bs.recon import vcdgs
+
+    now = [1000.0]
+    monkeypatch.setattr(vcdgs.time, "time", lambda: now[0])
+    s = vcdgs._Schedule(iterations=100, warm=20, deadline=1010.0)  # 10 s for 100 steps; warm-up = 20 %
+    now[0] = 1001.0  # 10 % of the time, 5 % of the steps
+    p = s.progress(5)
+    assert abs(p - 0.1) < 1e-9 and not s.joint(5, p)
+    now[0] = 1002.5  # 25 % of the time: past the warm-up's share after 8 steps
+    p = s.progress(8)
+    assert s.joint(8, p) and abs(s.joint_fraction(p) - 0.0625) < 1e-9
+    now[0] = 1010.0
+    assert s.progress(9) >= 1.0 and s.joint_fraction(s.progress(9)) == 1.0
+    plain = vcdgs._Schedule(iterations=100, warm=20, deadline=None)  # steps only
+    assert not plain.joint(19, plain.progress(19)) and plain.joint(20, plain.progress(20))
+    assert abs(plain.joint_fraction(plain.progress(60)) - 0.5) < 1e-9

@@ -8,6 +8,7 @@ unchanged are skipped; a video interrupted mid-training continues from its check
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -124,6 +125,8 @@ def reconstruct_command(
         overrides["num_control_points"] = control_points
     if lpips_weights:
         overrides["lpips_weights"] = lpips_weights
+    if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
+        overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
     cfg = preset(preset_name, **overrides)
     grids = list_videos(project, videos)
     t0 = time.time()

@@ -276,13 +276,40 @@ def _COARSE_CFG(cfg: VCDGSConfig) -> VCDGSConfig:
     return replace(cfg, perceptual_weight=0.0, silhouette_band=0, pyramid_levels=min(cfg.pyramid_levels, 2))
 
 
+class _Schedule:
+    """Where training stands, as a fraction 0..1 of the run: steps done / iterations or, under a
+    deadline, the elapsed share of the time left at the start, whichever is further.
+
+    The warm-up owns the first ``warm / iterations`` of the run and the joint stage the rest
+    (its learning rate decays over its share). Without a deadline this is the plain step
+    schedule; with one, a character too large for the budget gets proportionally fewer
+    warm-up *and* joint steps instead of a full warm-up and almost no joint training."""
+
+    def __init__(self, iterations: int, warm: int, deadline: float | None):
+        self.iterations, self.warm, self.deadline = iterations, warm, deadline
+        self.t0 = time.time()
+        self.warm_share = warm / max(iterations, 1)
+
+    def progress(self, step: int) -> float:
+        p = step / max(self.iterations, 1)
+        if self.deadline is not None:
+            p = max(p, (time.time() - self.t0) / max(self.deadline - self.t0, 1e-6))
+        return p
+
+    def joint(self, step: int, p: float) -> bool:
+        return step >= self.warm or (self.deadline is not None and p >= self.warm_share)
+
+    def joint_fraction(self, p: float) -> float:
+        return min(max((p - self.warm_share) / max(1.0 - self.warm_share, 1e-9), 0.0), 1.0)
+
+
 def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
           checkpoint: Path | None = None, key: str = "", deadline: float | None = None) -> dict:
     """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``.
 
-    ``deadline`` (time.time() value, optional): the joint stage's learning-rate decay follows
-    max(step fraction, elapsed-time fraction) and training stops once the deadline passes
-    (the warm-up always completes)."""
+    ``deadline`` (time.time() value, optional): the schedule follows max(step fraction, elapsed-time
+    fraction) (see ``_Schedule``), so a run that cannot finish its steps in time still gets the
+    warm-up / joint split and the full learning-rate decay, compressed into the steps it can afford."""
     from tqdm import tqdm
 
     dev = _device(cfg)
@@ -313,19 +340,18 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
                total=cfg.iterations)
     model.train()
-    joint_start = None
+    clock = _Schedule(cfg.iterations, warm, deadline)
+    joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
     history["steps_run"] = start
     for step in bar:
-        joint = step >= warm
-        frac = (step - warm) / max(cfg.iterations - warm, 1)
-        if joint and deadline is not None:
-            now = time.time()
-            if joint_start is None:
-                joint_start = now
-            if now >= deadline:
-                history["stopped_at_budget"] = step
-                break
-            frac = max(frac, (now - joint_start) / max(deadline - joint_start, 1e-6))
+        p = clock.progress(step)
+        if p >= 1.0:  # only reachable through the deadline: steps alone end with the loop
+            history["stopped_at_budget"] = step
+            break
+        if not joint and clock.joint(step, p):
+            joint = True
+            history["joint_from"] = step
+        frac = clock.joint_fraction(p)
         history["steps_run"] = step + 1
         for k, o in opts.items():
             base = groups[k][1]
