@@ -294,6 +294,14 @@ def splat_covariances(vertices: np.ndarray, faces: np.ndarray, sigma_t: np.ndarr
 # ------------------------------------------------------------------------------------------ app
 
 
+def _sync_player(frame, play, frames: int, t: int) -> None:
+    """Fit a player's slider to a sequence of ``frames`` frames showing frame ``t``."""
+    frame.max = max(frames - 1, 1)
+    frame.disabled = play.disabled = frames < 2
+    if frame.value != t:
+        frame.value = t  # re-enters the setter once with the same t
+
+
 class ViewerApp:
     """A running viewer for one project folder (state: the server, its GUI and the shown pose)."""
 
@@ -598,11 +606,7 @@ class ViewerApp:
         nt = cap.vertices.shape[0]
         t = int(min(max(t, 0), nt - 1))
         with self._lock:
-            self._capture_frame.max = max(nt - 1, 1)
-            self._capture_frame.disabled = nt < 2
-            self._capture_play.disabled = nt < 2
-            if self._capture_frame.value != t:
-                self._capture_frame.value = t  # re-enters here once with the same t
+            _sync_player(self._capture_frame, self._capture_play, nt, t)
             if cap.frames is not None:
                 self._capture_image.image = cap.frames[min(t, len(cap.frames) - 1)]
                 self._capture_image.visible = True
@@ -624,11 +628,7 @@ class ViewerApp:
         nt = rt.weights.shape[0]
         t = int(min(max(t, 0), nt - 1))
         with self._lock:
-            self._retarget_frame.max = max(nt - 1, 1)
-            self._retarget_frame.disabled = nt < 2
-            self._retarget_play.disabled = nt < 2
-            if self._retarget_frame.value != t:
-                self._retarget_frame.value = t
+            _sync_player(self._retarget_frame, self._retarget_play, nt, t)
             self._retarget_note.content = f"ignored columns: {', '.join(rt.ignored)}" if rt.ignored else ""
             if self._mode[0] == "capture":
                 self._capture_play.value = False
