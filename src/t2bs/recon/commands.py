@@ -42,7 +42,9 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     from t2bs.recon.vcdgs import evaluate_image_loss
 
     m = {"method": cfg.method, "seconds": round(result.seconds, 2), "perceptual_loss": result.loss_kind,
-         "iterations": cfg.iterations, "control_points": cfg.num_control_points, "resolution": cfg.resolution,
+         "iterations": cfg.iterations, "steps_run": result.history.get("steps_run"),
+         "stopped_at_budget": result.history.get("stopped_at_budget") is not None,
+         "control_points": cfg.num_control_points, "resolution": cfg.resolution,
          "first_train_loss": result.history.get("first_image_loss"), "final_train_loss": result.history.get("final_image_loss"),
          "huber_static": evaluate_image_loss(result.model, result.data, cfg, deformed=False),
          "huber_recon": evaluate_image_loss(result.model, result.data, cfg, deformed=True)}

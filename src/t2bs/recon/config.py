@@ -47,8 +47,9 @@ class VCDGSConfig:
     # --- optimisation ---
     iterations: int = 800  # total steps (global warm-up included)
     time_budget_s: float = 260.0  # wall-clock cap of one reconstruction (static fit included; 0 = none): when the
-    #   steps would overrun it, the joint stage's learning-rate schedule follows elapsed time instead and training
-    #   stops at the budget (large meshes on a loaded CPU); the history records the steps actually run
+    #   steps would overrun it, the schedule follows elapsed time instead (vcdgs._Schedule): warm-up, joint stage and
+    #   learning-rate decay keep their shares of the run, in fewer steps (large meshes, a loaded CPU); the history
+    #   records the steps actually run. Results then depend on the machine's speed; 0 makes them exact per seed
     global_iters: int = 200  # warm-up steps that fit only the global SE(3) per (v, t) (paper: "first fit the global transformation")
     global_coarse: int = 0  # coarse-to-fine warm-up: its loss starts on 2^k-downsampled images (k = global_coarse),
     #   k decreasing linearly to 0 by the end of the warm-up (a wide basin for the head's rigid motion first)

@@ -9,7 +9,8 @@ Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k
 images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
 by default (no consistent gain in our runs); config.view_residual_static (view residuals fixed
 over time) is also off: it helped under paper-like defects and hurt on clean grids. config.time_budget_s caps one reconstruction's wall
-time (quick: 260 s): past it the joint stage's schedule follows elapsed time and stops.
+time (quick: 260 s): the schedule then runs on max(step, elapsed-time) progress, so warm-up, joint
+stage and learning-rate decay all shrink in proportion when the steps do not fit (``_Schedule``).
 
 Regularisers (joint stage; all measured in units of the control-point spacing so the weights
 do not depend on the character's size or on k):
@@ -26,6 +27,17 @@ do not depend on the character's size or on k):
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
+
+What limits accuracy (measured on clean facecap / turtle mouth-wide grids, quick preset): most
+moving vertices of a mouth prompt are out of sight (94 % of the moving (frame, vertex) pairs are
+hidden from the canonical view at rest, 66-71 % from every training view): the mouth interior, the
+teeth, the back of the head. Visible moving vertices reach ~0.3-0.45 of the static error, hidden
+ones ~0.4-0.55; facecap's lower teeth (separate 34-49-vertex parts) do not follow the jaw at all
+(their error equals static), and the global stage absorbs part of the jaw opening as head pitch,
+which the local prior only partly undoes on weakly textured skin. Doubling the steps (1600) moved
+the ratio 0.535 -> 0.512 on facecap and not at all on the turtle; skinning small or hidden parts to
+the surrounding surface (teeth to lips) did not help either (the lips' control points mix the
+upper and lower jaw), nor did weaker or stronger local / rigidity priors beyond noise.
 
 Resume: a checkpoint (model + optimiser + step + RNG) is written every ``checkpoint_every``
 steps next to the outputs, tagged with the job key; a re-run with the same key continues
