@@ -7,8 +7,8 @@ step renders a batch of random (view, time) pairs (a share of them at the canoni
 which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
 Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k-downsampled
 images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
-by default (no consistent gain in our runs); config.view_residual_static (view residuals fixed
-over time) is also off: it helped under paper-like defects and hurt on clean grids. config.time_budget_s caps one reconstruction's wall
+by default (no consistent gain in our runs). config.view_residual_static (on by default) keeps the
+view residuals fixed over time: a per-view shape disagreement, as 4D generators make. config.time_budget_s caps one reconstruction's wall
 time (quick: 260 s): the schedule then runs on max(step, elapsed-time) progress, so warm-up, joint
 stage and learning-rate decay all shrink in proportion when the steps do not fit (``_Schedule``).
 
