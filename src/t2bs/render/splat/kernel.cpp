@@ -27,11 +27,14 @@
 namespace {
 
 // Run fn(item, thread) for item in [0, n) on nthreads threads pulling items from an atomic
-// counter (dynamic schedule). Plain std::threads rather than an OpenMP team: the machines this
-// runs on are often oversubscribed, and OpenMP's spinning barriers then burn the time slices
-// the other worker needs (measured: 2 OpenMP threads were ~2x slower than 1 under load).
+// counter (dynamic schedule), or, with ``fixed``, thread t taking items t, t + nthreads, ... in
+// order: callers that sum into per-thread buffers need the same items in the same buffer every
+// run, or the float sums (and a seeded training run) change from run to run.
+// Plain std::threads rather than an OpenMP team: the machines this runs on are often
+// oversubscribed, and OpenMP's spinning barriers then burn the time slices the other worker
+// needs (measured: 2 OpenMP threads were ~2x slower than 1 under load).
 template <class F>
-void parallel_items(int64_t n, int nthreads, F&& fn) {
+void parallel_items(int64_t n, int nthreads, F&& fn, bool fixed = false) {
   nthreads = (int)std::max<int64_t>(1, std::min<int64_t>(nthreads, n));
   if (nthreads == 1) {
     for (int64_t i = 0; i < n; ++i) fn(i, 0);
@@ -39,6 +42,10 @@ void parallel_items(int64_t n, int nthreads, F&& fn) {
   }
   std::atomic<int64_t> next{0};
   auto worker = [&](int tid) {
+    if (fixed) {
+      for (int64_t i = tid; i < n; i += nthreads) fn(i, tid);
+      return;
+    }
     for (int64_t i; (i = next.fetch_add(1, std::memory_order_relaxed)) < n;) fn(i, tid);
   };
   std::vector<std::thread> pool;
@@ -353,7 +360,7 @@ torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch:
         o[5] += d_o; o[6] += d_r; o[7] += d_g; o[8] += d_b; o[9] += d_z;
       }
     }
-  });
+  }, /*fixed=*/true);  // per-thread sums: the same items in the same buffer every run
   auto out = torch::empty({C, N, 10}, torch::TensorOptions().dtype(torch::kFloat32));
   float* po = out.data_ptr<float>();
   const int64_t rchunk = 1 << 16;
