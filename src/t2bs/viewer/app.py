@@ -294,14 +294,6 @@ def splat_covariances(vertices: np.ndarray, faces: np.ndarray, sigma_t: np.ndarr
 # ------------------------------------------------------------------------------------------ app
 
 
-def _sync_player(frame, play, frames: int, t: int) -> None:
-    """Fit a player's slider to a sequence of ``frames`` frames showing frame ``t``."""
-    frame.max = max(frames - 1, 1)
-    frame.disabled = play.disabled = frames < 2
-    if frame.value != t:
-        frame.value = t  # re-enters the setter once with the same t
-
-
 class ViewerApp:
     """A running viewer for one project folder (state: the server, its GUI and the shown pose)."""
 
@@ -528,16 +520,69 @@ class ViewerApp:
         with gui.add_folder("Captures"):
             if not self.capture_ids:
                 gui.add_markdown("No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).")
-            self._capture_dd, self._capture_frame, self._capture_play, self._capture_note = self._add_player(
-                "capture", self.capture_ids, ("Capture", "Capture frame", "Play capture"), self._set_capture)
+            self._capture_dd = gui.add_dropdown("Capture", ("(none)", *self.capture_ids), initial_value="(none)",
+                                                disabled=not self.capture_ids)
+            self._capture_frame = gui.add_slider("Capture frame", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self._capture_play = gui.add_checkbox("Play capture", initial_value=False, disabled=True)
+            self._capture_note = gui.add_markdown("")
             self._capture_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)",
                                                 visible=False)
+
+            @self._capture_dd.on_update
+            def _(_event) -> None:
+                vid = self._capture_dd.value
+                if vid == "(none)":
+                    self._capture_play.value = False
+                    for h in (self._capture_frame, self._capture_play):
+                        h.disabled = True
+                    self._capture_image.visible = False
+                    with self._lock:
+                        if self._mode[0] == "capture":
+                            self._show_shapes()
+                    return
+                self._set_capture(vid, 0)
+
+            @self._capture_frame.on_update
+            def _(_event) -> None:
+                vid = self._capture_dd.value
+                if vid != "(none)":
+                    self._set_capture(vid, int(self._capture_frame.value))
+
+            @self._capture_play.on_update
+            def _(_event) -> None:
+                self._start_play("capture", self._capture_play.value)
 
         with gui.add_folder("Retargeting"):
             if not self.retarget_names:
                 gui.add_markdown("No retargeting results (`retarget/NAME/weights.csv`).")
-            self._retarget_dd, self._retarget_frame, self._retarget_play, self._retarget_note = self._add_player(
-                "retarget", self.retarget_names, ("Result", "Retarget frame", "Play retargeting"), self._set_retarget)
+            self._retarget_dd = gui.add_dropdown("Result", ("(none)", *self.retarget_names), initial_value="(none)",
+                                                 disabled=not self.retarget_names)
+            self._retarget_frame = gui.add_slider("Retarget frame", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self._retarget_play = gui.add_checkbox("Play retargeting", initial_value=False, disabled=True)
+            self._retarget_note = gui.add_markdown("")
+
+            @self._retarget_dd.on_update
+            def _(_event) -> None:
+                name = self._retarget_dd.value
+                if name == "(none)":
+                    self._retarget_play.value = False
+                    for h in (self._retarget_frame, self._retarget_play):
+                        h.disabled = True
+                    with self._lock:
+                        if self._mode[0] == "retarget":
+                            self._show_shapes()
+                    return
+                self._set_retarget(name, 0)
+
+            @self._retarget_frame.on_update
+            def _(_event) -> None:
+                name = self._retarget_dd.value
+                if name != "(none)":
+                    self._set_retarget(name, int(self._retarget_frame.value))
+
+            @self._retarget_play.on_update
+            def _(_event) -> None:
+                self._start_play("retarget", self._retarget_play.value)
 
         with gui.add_folder("Blendshapes"):
             reset = gui.add_button("Reset")
@@ -606,7 +651,11 @@ class ViewerApp:
         nt = cap.vertices.shape[0]
         t = int(min(max(t, 0), nt - 1))
         with self._lock:
-            _sync_player(self._capture_frame, self._capture_play, nt, t)
+            self._capture_frame.max = max(nt - 1, 1)
+            self._capture_frame.disabled = nt < 2
+            self._capture_play.disabled = nt < 2
+            if self._capture_frame.value != t:
+                self._capture_frame.value = t  # re-enters here once with the same t
             if cap.frames is not None:
                 self._capture_image.image = cap.frames[min(t, len(cap.frames) - 1)]
                 self._capture_image.visible = True
@@ -628,7 +677,11 @@ class ViewerApp:
         nt = rt.weights.shape[0]
         t = int(min(max(t, 0), nt - 1))
         with self._lock:
-            _sync_player(self._retarget_frame, self._retarget_play, nt, t)
+            self._retarget_frame.max = max(nt - 1, 1)
+            self._retarget_frame.disabled = nt < 2
+            self._retarget_play.disabled = nt < 2
+            if self._retarget_frame.value != t:
+                self._retarget_frame.value = t
             self._retarget_note.content = f"ignored columns: {', '.join(rt.ignored)}" if rt.ignored else ""
             if self._mode[0] == "capture":
                 self._capture_play.value = False
@@ -648,40 +701,6 @@ class ViewerApp:
         if not len(values):
             return self.neutral
         return (self.neutral.astype(np.float64) + (values @ self._stack).reshape(-1, 3)).astype(np.float32)
-
-    def _add_player(self, mode: str, names: list[str], labels: tuple[str, str, str], show):
-        """A sequence picker (dropdown + frame slider + play box + note) wired to ``show(name, frame)``;
-        "(none)" stops playback and, if this sequence is on screen, returns to the blendshapes.
-        -> (dropdown, slider, checkbox, markdown)."""
-        gui = self.server.gui
-        dd = gui.add_dropdown(labels[0], ("(none)", *names), initial_value="(none)", disabled=not names)
-        frame = gui.add_slider(labels[1], min=0, max=1, step=1, initial_value=0, disabled=True)
-        play = gui.add_checkbox(labels[2], initial_value=False, disabled=True)
-        note = gui.add_markdown("")
-
-        @dd.on_update
-        def _(_event) -> None:
-            if dd.value != "(none)":
-                show(dd.value, 0)
-                return
-            play.value = False
-            frame.disabled = play.disabled = True
-            if mode == "capture":
-                self._capture_image.visible = False
-            with self._lock:
-                if self._mode[0] == mode:
-                    self._show_shapes()
-
-        @frame.on_update
-        def _(_event) -> None:
-            if dd.value != "(none)":
-                show(dd.value, int(frame.value))
-
-        @play.on_update
-        def _(_event) -> None:
-            self._start_play(mode, play.value)
-
-        return dd, frame, play, note
 
     # ------------------------------------------------------------------------- threads
 
