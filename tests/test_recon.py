@@ -216,12 +216,12 @@ def test_schedule_compresses_warmup_and_decay_into_the_budget(monkeypatch):
     s = vcdgs._Schedule(iterations=100, warm=20, deadline=1010.0)  # 10 s for 100 steps; warm-up = 20 %
     now[0] = 1001.0  # 10 % of the time, 5 % of the steps
     p = s.progress(5)
-    assert abs(p - 0.1) < 1e-9 and not s.joint(5, p)
+    assert abs(p - 0.1) < 1e-9 and not s.joint(p)
     now[0] = 1002.5  # 25 % of the time: past the warm-up's share after 8 steps
     p = s.progress(8)
-    assert s.joint(8, p) and abs(s.joint_fraction(p) - 0.0625) < 1e-9
+    assert s.joint(p) and abs(s.joint_fraction(p) - 0.0625) < 1e-9
     now[0] = 1010.0
     assert s.progress(9) >= 1.0 and s.joint_fraction(s.progress(9)) == 1.0
     plain = vcdgs._Schedule(iterations=100, warm=20, deadline=None)  # steps only
-    assert not plain.joint(19, plain.progress(19)) and plain.joint(20, plain.progress(20))
+    assert not plain.joint(plain.progress(19)) and plain.joint(plain.progress(20))
     assert abs(plain.joint_fraction(plain.progress(60)) - 0.5) < 1e-9

@@ -15,7 +15,7 @@ import roma
 import torch
 
 
-def _matvec(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+def matvec(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """m [..., 3, 3] times x [..., 3] (broadcast) -> [..., 3]. Written as multiply + sum because
     einsum lowers to a CPU bmm over millions of 3x3 blocks, which loops per block (~10x slower)."""
     return (m * x[..., None, :]).sum(-1)
@@ -28,7 +28,7 @@ def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbour
     -> (M [B, N, 3, 3] blended rotation matrices, b [B, N, 3] blended offsets, q [B, N, 4] XYZW
     blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k)."""
     rot = roma.rotvec_to_rotmat(rotvec)  # [B, K, 3, 3]
-    off = p + trans - _matvec(rot, p)  # [B, K, 3]
+    off = p + trans - matvec(rot, p)  # [B, K, 3]
     q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
     q = torch.where(q[..., 3:4] < 0, -q, q)  # one hemisphere, so that the average is meaningful
     packed = torch.cat([rot.flatten(-2), off, q], -1)  # [B, K, 16]
@@ -42,7 +42,7 @@ def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Te
     """x [N, 3], q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3] (about p_k), neighbours/weights
     [N, knn] -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
     m, b, q = _blend(rotvec, trans, p, neighbours, weights)
-    xt = _matvec(m, x) + b
+    xt = matvec(m, x) + b
     return xt, roma.quat_product(q, q_rest[None].expand_as(q))
 
 
@@ -51,21 +51,7 @@ def lbs_positions(x: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans:
     """x [N, 3] rest positions, p [K, 3] control points, rotvec/trans [B, K, 3],
     neighbours/weights [N, knn] -> [B, N, 3] skinned positions."""
     m, b, _ = _blend(rotvec, trans, p, neighbours, weights)
-    return _matvec(m, x) + b
-
-
-def blend_rotations(rotvec: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """rotvec [B, K, 3] -> [B, N, 4] XYZW unit quaternion per Gaussian (weighted quaternion blend)."""
-    q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
-    q = torch.where(q[..., 3:4] < 0, -q, q)
-    blended = (weights[None, :, :, None] * q[:, neighbours]).sum(2)  # [B, N, 4]
-    return blended / blended.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def lbs_rotations(q_rest: torch.Tensor, rotvec: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """q_rest [N, 4] XYZW -> [B, N, 4] XYZW: blended control rotation applied to each Gaussian."""
-    blend = blend_rotations(rotvec, neighbours, weights)
-    return roma.quat_product(blend, q_rest[None].expand_as(blend))
+    return matvec(m, x) + b
 
 
 def apply_rigid(x: torch.Tensor, q: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,

@@ -7,10 +7,11 @@ step renders a batch of random (view, time) pairs (a share of them at the canoni
 which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
 Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k-downsampled
 images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
-by default (no consistent gain in our runs). config.view_residual_static (on by default) keeps the
-view residuals fixed over time: a per-view shape disagreement, as 4D generators make. config.time_budget_s caps one reconstruction's wall
-time (quick: 260 s): the schedule then runs on max(step, elapsed-time) progress, so warm-up, joint
-stage and learning-rate decay all shrink in proportion when the steps do not fit (``_Schedule``).
+by default (no consistent gain in our runs). config.view_residual_static (on by default) keeps
+the view residuals fixed over time: a per-view shape disagreement, as 4D generators make.
+config.time_budget_s caps one reconstruction's wall time (quick: 260 s): the schedule then runs on
+max(step, elapsed-time) progress, so warm-up, joint stage and learning-rate decay all shrink in
+proportion when the steps do not fit (``_Schedule``).
 
 Regularisers (joint stage; all measured in units of the control-point spacing so the weights
 do not depend on the character's size or on k):
@@ -59,6 +60,7 @@ from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import VCDGSConfig
 from t2bs.recon.control_points import build_control_points
 from t2bs.recon.deform import VCDGSModel
+from t2bs.recon.lbs import matvec
 from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render, with_faces
 from t2bs.recon.losses import PerceptualLoss, image_loss
 
@@ -214,7 +216,7 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
         p, nb = model.cp, model.cp_neighbours  # [K, 3], [K, m]
         rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, K, 3, 3]
         tr = local[..., 3:]
-        pred = torch.einsum("bkij,kmj->bkmi", rot, p[nb] - p[:, None]) + p[:, None] + tr[:, :, None]  # [B, K, m, 3]
+        pred = matvec(rot[:, :, None], p[nb] - p[:, None]) + p[:, None] + tr[:, :, None]  # [B, K, m, 3]
         actual = p[nb] + tr[:, nb]  # [B, K, m, 3]
         terms["rigidity"] = cfg.rigidity_weight * ((pred - actual) ** 2).sum(-1).mean() / s2
     if cfg.local_weight > 0:
@@ -298,7 +300,7 @@ class _Schedule:
     warm-up *and* joint steps instead of a full warm-up and almost no joint training."""
 
     def __init__(self, iterations: int, warm: int, deadline: float | None):
-        self.iterations, self.warm, self.deadline = iterations, warm, deadline
+        self.iterations, self.deadline = iterations, deadline
         self.t0 = time.time()
         self.warm_share = warm / max(iterations, 1)
 
@@ -308,8 +310,9 @@ class _Schedule:
             p = max(p, (time.time() - self.t0) / max(self.deadline - self.t0, 1e-6))
         return p
 
-    def joint(self, step: int, p: float) -> bool:
-        return step >= self.warm or (self.deadline is not None and p >= self.warm_share)
+    def joint(self, p: float) -> bool:
+        """Past the warm-up's share (without a deadline: step >= warm, exactly)."""
+        return p >= self.warm_share
 
     def joint_fraction(self, p: float) -> float:
         return min(max((p - self.warm_share) / max(1.0 - self.warm_share, 1e-9), 0.0), 1.0)
@@ -360,7 +363,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         if p >= 1.0:  # only reachable through the deadline: steps alone end with the loop
             history["stopped_at_budget"] = step
             break
-        if not joint and clock.joint(step, p):
+        if not joint and clock.joint(p):
             joint = True
             history["joint_from"] = step
         frac = clock.joint_fraction(p)
