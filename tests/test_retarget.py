@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import asset
 
 from t2bs.errors import MissingCheckpointError, UserError
 from t2bs.geometry.mesh import normalize
-
-ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
-if not ASSETS.exists():
-    ASSETS = Path("/work/shared/assets")
 
 mp = pytest.importorskip("t2bs.retarget.face_tracking")
 needs_mp = pytest.mark.skipif(not mp.mediapipe_available(), reason="MediaPipe venv not installed (scripts/setup.sh)")
@@ -22,7 +17,7 @@ needs_mp = pytest.mark.skipif(not mp.mediapipe_available(), reason="MediaPipe ve
 def turtle():
     from t2bs.geometry.io import load_mesh
 
-    return normalize(load_mesh(ASSETS / "turtle.glb"))[0]
+    return normalize(load_mesh(asset("turtle.glb")))[0]
 
 
 def test_mapping_table_is_consistent():
@@ -217,7 +212,7 @@ def test_cli_end_to_end_and_bad_driver(tmp_path, turtle):
     save_mesh(turtle, proj / "character" / "mesh.glb")
     save_model(morph_model(turtle), proj / "blendshapes" / "model.npz")
     w = driver_weights(24)
-    frames = render_driver(w, 192)
+    frames = render_driver(w, 192, asset=asset("facecap.glb"))
     frames[5] = 255  # a frame without a face
     video = tmp_path / "drv.mp4"
     imageio.mimwrite(video, list(frames), fps=24, macro_block_size=1)
