@@ -39,6 +39,20 @@ which the local prior only partly undoes on weakly textured skin. Doubling the s
 the ratio 0.535 -> 0.512 on facecap and not at all on the turtle; skinning small or hidden parts to
 the surrounding surface (teeth to lips) did not help either (the lips' control points mix the
 upper and lower jaw), nor did weaker or stronger local / rigidity priors beyond noise.
+Splitting the error into head motion and expression (the animator's GT separates them; a
+Procrustes fit on the vertices no morph touches gives the true head pose) shows where it is:
+the head motion is recovered to 0.13-0.29 of its static error, the expression only partly. The
+least-squares gain of the recovered expression displacement on the true one is ~0.24 for facecap
+mouth-wide (0.27 on vertices visible from the canonical view) and ~0 for the turtle's blink.
+The turtle's eyelids slide down *over* the eyeball (60 % of their vertices are hidden in every
+view at rest); the likely cause is that a lid must pass in front of the eyeball's splats and the
+depth sort order carries no gradient, so nothing pulls it forward. The blink ratio (0.29) comes
+from the head motion alone. On facecap the chin drops but the lips stay
+together (the lower face stretches). More control points do not help (facecap mouth-wide 0.59
+at k = 1000, 0.66 at k = 2000: finer control points no longer carry the jaw's motion from the
+visible chin to the hidden mouth parts; on the turtle's blink k = 2000 gave 0.25 against 0.29, all
+of it in the head motion, the lids still open); rigidity 0.05, local 0.005, a 50-step warm-up and
+lr_deform 5e-3 all gave 0.51-0.52 (baseline 0.535, single runs, 1 thread).
 
 Resume: a checkpoint (model + optimiser + step + RNG) is written every ``checkpoint_every``
 steps next to the outputs, tagged with the job key; a re-run with the same key continues

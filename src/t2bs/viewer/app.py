@@ -325,6 +325,7 @@ class ViewerApp:
         self._lock = threading.RLock()
         self._values = np.zeros(len(self.shapes), np.float64)  # [M] slider values
         self._mode: tuple = ("shapes",)  # ("shapes",) | ("capture", id, t) | ("retarget", name, t)
+        self._open_at = 0  # frame at which a capture / retargeting chosen in its dropdown opens (show_capture sets it)
         self._requested = 0  # version of the newest state
         self._pushed = 0  # version of the newest state queued to the clients
         self._pushed_cv = threading.Condition()
@@ -403,7 +404,14 @@ class ViewerApp:
     def show_capture(self, video_id: str, frame: int = 0, wait: bool = True) -> None:
         if video_id not in self.capture_ids:
             raise UserError(f"no reconstructed capture {video_id!r}; have {', '.join(self.capture_ids) or 'none'}")
-        self._capture_dd.value = video_id  # its callback loads the capture at frame 0 if it changed
+        # The dropdown's callback (viser runs it synchronously) opens a newly chosen capture at
+        # the requested frame rather than at 0: pushing frame 0 first let a slow browser draw
+        # and hold it. Unchanged dropdown: no callback, so set the frame here.
+        self._open_at = int(frame)
+        try:
+            self._capture_dd.value = video_id
+        finally:
+            self._open_at = 0
         self._set_capture(video_id, int(frame))
         if wait:
             self.wait_idle()
@@ -411,7 +419,11 @@ class ViewerApp:
     def show_retarget(self, name: str, frame: int = 0, wait: bool = True) -> None:
         if name not in self.retarget_names:
             raise UserError(f"no retargeting result {name!r}; have {', '.join(self.retarget_names) or 'none'}")
-        self._retarget_dd.value = name
+        self._open_at = int(frame)  # as in show_capture
+        try:
+            self._retarget_dd.value = name
+        finally:
+            self._open_at = 0
         self._set_retarget(name, int(frame))
         if wait:
             self.wait_idle()
@@ -540,7 +552,7 @@ class ViewerApp:
                         if self._mode[0] == "capture":
                             self._show_shapes()
                     return
-                self._set_capture(vid, 0)
+                self._set_capture(vid, self._open_at)
 
             @self._capture_frame.on_update
             def _(_event) -> None:
@@ -572,7 +584,7 @@ class ViewerApp:
                         if self._mode[0] == "retarget":
                             self._show_shapes()
                     return
-                self._set_retarget(name, 0)
+                self._set_retarget(name, self._open_at)
 
             @self._retarget_frame.on_update
             def _(_event) -> None:
