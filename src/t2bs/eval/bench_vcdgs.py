@@ -59,7 +59,8 @@ def heldout_images(mesh, vertices: np.ndarray, cameras, shading: str, renderer) 
 
 
 def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], preset_name: str, size: int,
-             frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False) -> list[dict]:
+             frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
+             options: dict | None = None) -> list[dict]:
     from t2bs.eval.metrics import geometry_metrics, psnr, ssim
     from t2bs.recon.config import preset
     from t2bs.recon.vcdgs import reconstruct_grid
@@ -80,7 +81,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
             else:
-                over = {"method": method, "holdout_views": tuple(holdout)}
+                over = {**(options or {}), "method": method, "holdout_views": tuple(holdout)}
                 if iterations:
                     over.update(iterations=iterations, global_iters=min(preset(preset_name).global_iters, iterations // 5))
                 cfg = preset(preset_name, **over)
@@ -128,7 +129,7 @@ def summarise(rows: list[dict]) -> dict:
 
 def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods: list[str], preset_name: str = "quick",
               size: int = 128, frames: int = 16, holdout: tuple[int, ...] = (4, 10), iterations: int = 0,
-              json_path: Path | None = None, progress: bool = False) -> dict:
+              json_path: Path | None = None, progress: bool = False, options: dict | None = None) -> dict:
     bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
         raise UserError(f"unknown method {bad[0]!r}; use {', '.join(ALL_METHODS)}")
@@ -138,14 +139,14 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
     for name, mesh in loaded:
         for d in defects:
             for p in prompts:
-                rows += run_case(name, mesh, p, d, methods, preset_name, size, frames, holdout, iterations, progress)
+                rows += run_case(name, mesh, p, d, methods, preset_name, size, frames, holdout, iterations, progress, options)
                 if json_path is not None:  # partial results survive an interruption
                     from t2bs.project import write_json
 
                     write_json(json_path, {"rows": rows, "summary": summarise(rows), "partial": True})
     result = {"rows": rows, "summary": summarise(rows),
               "settings": {"preset": preset_name, "size": size, "frames": frames, "holdout_views": list(holdout),
-                           "iterations": iterations or "preset"}}
+                           "iterations": iterations or "preset", "options": options or {}}}
     if json_path is not None:
         from t2bs.project import write_json
 
@@ -162,6 +163,7 @@ def bench_vcdgs_command(
     size: int = typer.Option(128, help="Grid frame size in pixels."),
     frames: int = typer.Option(16, help="Frames per grid."),
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
+    track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here."),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
@@ -169,6 +171,7 @@ def bench_vcdgs_command(
     meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
-                       iterations=iterations, json_path=json_file)
+                       iterations=iterations, json_path=json_file,
+                       options=None if track_weight is None else {"track_weight": track_weight})
     print(markdown(result["rows"]))
     print(json.dumps(result, indent=1))

@@ -45,6 +45,9 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "iterations": cfg.iterations, "steps_run": result.history.get("steps_run"),
          "stopped_at_budget": result.history.get("stopped_at_budget") is not None,
          "control_points": cfg.num_control_points, "resolution": cfg.resolution,
+         "track_weight": cfg.track_weight,  # 0 = the paper's loss alone
+         # share of (view, frame, vertex) entries with a valid optical-flow track
+         "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),
          "first_train_loss": result.history.get("first_image_loss"), "final_train_loss": result.history.get("final_image_loss"),
          "huber_static": evaluate_image_loss(result.model, result.data, cfg, deformed=False),
          "huber_recon": evaluate_image_loss(result.model, result.data, cfg, deformed=True)}
@@ -108,6 +111,7 @@ def reconstruct_command(
     method: str = typer.Option("full", help=f"Method or ablation: {' | '.join(METHODS)}."),
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
+    track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
@@ -127,6 +131,8 @@ def reconstruct_command(
         overrides["num_control_points"] = control_points
     if lpips_weights:
         overrides["lpips_weights"] = lpips_weights
+    if track_weight is not None:
+        overrides["track_weight"] = track_weight
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
         overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
     cfg = preset(preset_name, **overrides)

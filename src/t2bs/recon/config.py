@@ -64,6 +64,15 @@ class VCDGSConfig:
     pyramid_levels: int = 3  # Huber also on 2x, 4x, ... average-pooled images: widens the basin of large motions
     mask_weight: float = 1.0  # Huber between rendered alpha and the grid's foreground masks (when the grid has masks)
     silhouette_band: int = 1  # px: silhouettes matched against the mask dilated this much (splat tails), see losses.py
+    track_weight: float = 0.05  # vertex tracks from optical flow (recon/tracks.py; our addition, 0 = the paper's loss):
+    #   projected vertex motion x(v, t) - x(v, 0) matches the flow-tracked motion of its rest pixel, all stages
+    track_refresh: int = 20  # steps between refreshes of the per-view rest pose the track term measures motion from
+    track_views: str = "all"  # views with tracks: "all" training views or only the "canonical" one
+    track_delta: float = 0.008  # Huber transition of the track term, fraction of the image's longer side (1 px at 128)
+    track_fb: float = 0.008  # forward-backward flow round-trip tolerance for a valid track, same unit
+    track_min_texture: float = 0.001  # tracks start only on textured pixels: min eigenvalue of the 5x5 structure tensor
+    #   (tracks.texture_strength, 128 px / 0..1 units); flat skin and straight edges leave flow to its smoothness prior
+    track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
     perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"
     lpips_weights: str = ""  # path to an lpips-style state dict (AlexNet features + lin layers), see losses.py
@@ -99,6 +108,8 @@ class VCDGSConfig:
             raise UserError("num_control_points and knn must be >= 1")
         if self.perceptual not in ("auto", "lpips", "dssim", "none"):
             raise UserError(f"perceptual must be auto|lpips|dssim|none, got {self.perceptual!r}")
+        if self.track_views not in ("all", "canonical"):
+            raise UserError(f"track_views must be all|canonical, got {self.track_views!r}")
         if self.iterations < 1 or self.global_iters < 0 or self.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
         return self

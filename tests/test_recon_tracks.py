@@ -1,0 +1,74 @@
+"""Optical-flow vertex tracks (recon/tracks.py) against known motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from t2bs.recon.gaussians import camera_tensors
+from t2bs.recon.tracks import VertexTracks, compute_tracks, project_points, track_loss
+from t2bs.recon.vcdgs import resize_stack
+from test_recon import sphere_mesh, splat_grid
+
+
+def _true_motion(grid, frames: np.ndarray) -> np.ndarray:
+    """[V, T, N, 2] projected pixel motion of the true vertices from frame 0."""
+    out = []
+    for cam in grid.cameras:
+        uv = np.stack([cam.project(f.astype(np.float64))[0] for f in frames])  # [T, N, 2]
+        out.append(uv - uv[:1])
+    return np.stack(out).astype(np.float32)
+
+
+def test_project_points_matches_camera():
+    mesh = sphere_mesh(1)
+    grid, _ = splat_grid(mesh, mesh.vertices[None], size=48, views=3)
+    vm, ks = camera_tensors(grid.cameras)
+    x = torch.as_tensor(mesh.vertices)[None].expand(3, -1, -1)
+    uv = project_points(x, vm, ks).numpy()
+    for v, cam in enumerate(grid.cameras):
+        assert np.allclose(uv[v], cam.project(mesh.vertices.astype(np.float64))[0], atol=1e-3)
+
+
+def test_tracks_follow_a_known_motion_and_skip_hidden_vertices():
+    mesh = sphere_mesh(3)
+    shift = np.array([0.04, -0.03, 0.0], np.float32)  # ~2 px at 64 px
+    frames = np.stack([mesh.vertices, mesh.vertices + shift, mesh.vertices + 2 * shift]).astype(np.float32)
+    grid, _ = splat_grid(mesh, frames, size=64, views=3)
+    images = torch.stack([resize_stack(grid.frames[v], (64, 64)) for v in range(3)])
+    tracks = compute_tracks(mesh, images, grid.cameras, [0, 1], fb_px=1.0, blur_px=0.5)  # every visible vertex
+    assert tracks.displacement.shape == (3, 3, mesh.num_vertices, 2) and tracks.weights.shape == (3, 3, mesh.num_vertices)
+    assert float(tracks.weights[2].abs().max()) == 0.0  # view 2 was not asked for
+    assert float(tracks.displacement[:, 0].abs().max()) == 0.0  # frame 0 is the rest pose
+    true = _true_motion(grid, frames)
+    for v in (0, 1):
+        cam = grid.cameras[v]
+        facing = ((mesh.vertex_normals() * (cam.position - mesh.vertices)).sum(-1) < 0)  # back of the sphere
+        assert float(tracks.weights[v, :, facing].max()) == 0.0  # never visible: never tracked
+        for t in (1, 2):
+            ok = tracks.weights[v, t].numpy() > 0
+            assert ok.mean() > 0.3  # most of the visible half is tracked
+            err = np.linalg.norm(tracks.displacement[v, t].numpy()[ok] - true[v, t][ok], axis=-1)
+            moved = np.linalg.norm(true[v, t][ok], axis=-1)
+            assert err.mean() < 0.3 * moved.mean(), (err.mean(), moved.mean())
+
+
+def test_track_loss_is_zero_at_the_true_motion_and_grows_away_from_it():
+    mesh = sphere_mesh(1)
+    frames = np.stack([mesh.vertices, mesh.vertices + [0.05, 0.0, 0.0]]).astype(np.float32)
+    grid, _ = splat_grid(mesh, frames, size=48, views=3)
+    true = torch.as_tensor(_true_motion(grid, frames))
+    w = torch.ones(true.shape[:3])
+    w[:, :, ::2] = 0.0  # invalid tracks must not count
+    tracks = VertexTracks(true, w)
+    vm, ks = camera_tensors(grid.cameras)
+    v_idx, t_idx = torch.tensor([0, 1, 2]), torch.tensor([1, 1, 1])
+    x0 = torch.as_tensor(frames[0])[None].expand(3, -1, -1)
+    xt = torch.as_tensor(frames[1])[None].expand(3, -1, -1)
+    at_truth = track_loss(xt, x0, vm, ks, tracks, v_idx, t_idx)
+    assert float(at_truth) < 1e-6
+    off = [float(track_loss(xt + d, x0, vm, ks, tracks, v_idx, t_idx)) for d in (0.01, 0.03, 0.1)]
+    assert 0 < off[0] < off[1] < off[2]
+    # The rest pose as the view sees it (a static per-view offset) is not motion.
+    bias = torch.tensor([0.0, 0.02, 0.0])
+    assert float(track_loss(xt + bias, x0 + bias, vm, ks, tracks, v_idx, t_idx)) < 0.05 * off[1]
