@@ -29,10 +29,13 @@ do not depend on the character's size or on k):
   motion from frame 0 matches optical-flow tracks of the vertex's rest pixel (DIS flow, forward-backward
   checked, textured pixels only), from the warm-up on. The splat loss moves a Gaussian only through
   the pixels it covers; the tracks give every textured visible vertex a long-range target. Measured
-  (clean, quick preset, p2p moving / static, paired runs at 1 thread): facecap mouth wide 0.52 ->
-  0.47 (0.44 with tracks on untextured pixels too, which bias rigid motion where flow is
-  underdetermined: the synthetic ellipsoid's roll came out 0.03 instead of 0.1 rad), facecap smiling
-  0.25 -> 0.22; time-decaying the weight was worse (0.46 on mouth wide).
+  (clean grids, quick preset, p2p moving / static, README): mean over turtle + facecap x 4 prompts
+  0.326 -> 0.275; facecap mouth wide 0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 ->
+  0.25. Variants, paired runs at 1 thread on facecap (mouth wide / smiling): no tracks - / 0.25;
+  tracks on every pixel 0.44 / 0.225, better on mouth wide, but flow on untextured pixels is
+  filled in by its smoothness prior and biases the rigid motion (the synthetic ellipsoid test's
+  roll came out 0.03 instead of 0.1 rad); textured only, min eigenvalue 1e-3 (default) 0.47 / -,
+  3e-3 0.51 / 0.218; weight 0.2 decaying to 0 over the joint stage 0.46 / 0.24.
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
