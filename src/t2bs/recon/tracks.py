@@ -46,12 +46,12 @@ def project_points(x: torch.Tensor, viewmats: torch.Tensor, ks: torch.Tensor) ->
 
 
 def _sample(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of ``field`` [H, W, 2] at continuous pixel positions ``uv`` [N, 2] (pixel i
-    covers [i, i + 1), so its centre is i + 0.5); positions outside are clamped to the border."""
+    """Bilinear lookup of ``field`` [H, W, C] at continuous pixel positions ``uv`` [N, 2] (pixel i
+    covers [i, i + 1), so its centre is i + 0.5) -> [N, C]; positions outside are clamped to the border."""
     from scipy.ndimage import map_coordinates
 
     coords = [uv[:, 1] - 0.5, uv[:, 0] - 0.5]
-    return np.stack([map_coordinates(field[..., c], coords, order=1, mode="nearest") for c in range(2)], -1)
+    return np.stack([map_coordinates(field[..., c], coords, order=1, mode="nearest") for c in range(field.shape[-1])], -1)
 
 
 def _grey(img: np.ndarray, blur_px: float) -> np.ndarray:
@@ -100,11 +100,9 @@ def texture_strength(grey: np.ndarray) -> np.ndarray:
 
 
 def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], views: list[int], fb_px: float = 1.0,
-                   blur_px: float = 0.7, progress: bool = False, visible: np.ndarray | None = None,
-                   min_texture: float = 0.0) -> VertexTracks:
+                   blur_px: float = 0.7, progress: bool = False, min_texture: float = 0.0) -> VertexTracks:
     """Tracks of every vertex in ``views`` of ``images`` [V, T, H, W, 3] float 0..1 (rest pose at
     t = 0), seen by ``cameras`` [V] at the images' resolution. Views not listed get weight 0.
-    ``visible`` [V, N] bool: ``rest_visibility`` of these views (computed when None).
     ``min_texture``: tracks start only where ``texture_strength`` of the rest image reaches it."""
     import cv2
     from tqdm import tqdm
@@ -116,13 +114,12 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
     weights = np.zeros((nv, nt, n), np.float32)
     dis = _flow_engine()
     verts = mesh.vertices.astype(np.float64)
-    if visible is None:
-        visible = rest_visibility(mesh, cameras, views)
+    visible = rest_visibility(mesh, cameras, views)
     for v in tqdm(views, desc="vertex tracks", leave=False, disable=not progress):
         u0 = cameras[v].project(verts)[0].astype(np.float32)  # [N, 2]
         frames = images[v].numpy()
         g0 = _grey(frames[0], blur_px)
-        start = visible[v] & (_sample(np.repeat(texture_strength(g0)[..., None], 2, -1), u0)[:, 0] >= min_texture)
+        start = visible[v] & (_sample(texture_strength(g0)[..., None], u0)[:, 0] >= min_texture)
         weights[v, 0] = start
         for t in range(1, nt):
             gt = _grey(frames[t], blur_px)

@@ -52,7 +52,8 @@ best fits the true motion of the visible vertices bound to it (knn 10) reaches a
 0.35 (mouth interior 0.50), because control points straddle both jaws; with 1200 control points 0.13
 (800: 0.21). So facecap mouth wide cannot reach the 0.25 target at k = 400; the earlier finding that
 more control points train worse predates the track term and is worth re-measuring.
-Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate 34-49-vertex parts) do not follow the jaw at all
+Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate
+34-49-vertex parts) do not follow the jaw at all
 (their error equals static), and the global stage absorbs part of the jaw opening as head pitch,
 which the local prior only partly undoes on weakly textured skin. Doubling the steps (1600) moved
 the ratio 0.535 -> 0.512 on facecap and not at all on the turtle; skinning small or hidden parts to
