@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).parent))
 from viewer_fixture import CAPTURE_ID, RETARGET_NAME, build_fixture_project  # noqa: E402
@@ -80,7 +81,7 @@ def test_api_shapes_captures_retarget(project):
 
         # Capture: the reconstructed frame and its canonical-view input frame.
         assert app.capture_ids == [CAPTURE_ID]
-        app.show_capture(CAPTURE_ID, frame=2)
+        app.show_capture(CAPTURE_ID, frame=3)
         assert app.mode == ("capture", CAPTURE_ID, 2)
         np.testing.assert_array_equal(app.current_vertices(), info["recon"][2])
         np.testing.assert_array_equal(app._capture_image.image, info["frames"][1, 2])  # canonical view = 1 of 3
@@ -306,6 +307,21 @@ def _disc_mask(uv: np.ndarray, shape: tuple[int, int], radius: float) -> np.ndar
     return mask
 
 
+def _shape_regions(v0, basis, scale, width: int, height: int):
+    """[H, W] masks: where shape 0 moves the surface, where shape 1 does (outside shape 0's), and
+    the character. Shape 0's region covers its moving vertices at rest and displaced, projected,
+    grown by a few pixels for shading that spreads past the last moving vertex."""
+    shape = (height, width)
+    moving = np.linalg.norm(basis[0], axis=1) > 1e-3 * np.linalg.norm(basis[0], axis=1).max()
+    posed = v0 + scale[0] * basis[0]
+    uv = _project(np.concatenate([v0[moving], posed[moving]]), width, height)
+    expected = _disc_mask(uv, shape, radius=0.02 * height)
+    other = _disc_mask(_project(v0[np.linalg.norm(basis[1], axis=1) > 1e-3], width, height), shape, radius=2)
+    other &= ~expected
+    silhouette = _disc_mask(_project(v0, width, height), shape, radius=0.02 * height)
+    return expected, other, silhouette
+
+
 @pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
                     reason="needs Debian's chromium and chromium-driver (apt-get install chromium chromium-driver)")
 @pytest.mark.slow
@@ -327,6 +343,7 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
             w, h = int(round(w)), int(round(h))
             centre = _project(np.zeros((1, 3)), w, h)[0]
             cx, cy = int(round(centre[0])), int(round(centre[1]))
+            expected, other, silhouette = _shape_regions(v0, basis, scale, w, h)
 
             def character_drawn(img):  # the sphere's centre pixel is not the white background
                 return img.shape[:2] == (h, w) and np.abs(img[cy, cx] - 255).max() > 40
@@ -339,23 +356,18 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
             back = _wait_stable(driver, lambda img: np.abs(img - after).max() > 40, timeout=15)
             # The capture's last reconstructed frame is the same pose as `after`, shown next to
             # its input frame in the panel.
+            # Wait on the character, not on any change: the panel's input frame can arrive and
+            # settle before the mesh update is drawn.
+            n_after = int(((np.abs(after - before).max(-1) > 40) & expected).sum())
             app.show_capture(CAPTURE_ID, frame=3)
-            capture = _wait_stable(driver, lambda img: np.abs(img - back).max() > 40, timeout=15)
+            capture = _wait_stable(
+                driver, lambda img: ((np.abs(img - back).max(-1) > 40) & expected).sum() > 0.5 * n_after,
+                timeout=15)
             n_images = driver.execute_script("return document.querySelectorAll('img').length;")
         finally:
             driver.quit()
 
     diff = np.abs(after - before).max(-1) > 40  # [H, W] pixels that changed clearly
-    # Where the shape moves the surface: its moving vertices at rest and displaced, projected, grown
-    # by a few pixels for shading that spreads past the last moving vertex.
-    moving = np.linalg.norm(basis[0], axis=1) > 1e-3 * np.linalg.norm(basis[0], axis=1).max()
-    posed = v0 + scale[0] * basis[0]
-    uv = _project(np.concatenate([v0[moving], posed[moving]]), w, h)
-    expected = _disc_mask(uv, (h, w), radius=0.02 * h)
-    other = _disc_mask(_project(v0[np.linalg.norm(basis[1], axis=1) > 1e-3], w, h), (h, w), radius=2)
-    other &= ~expected
-    silhouette = _disc_mask(_project(v0, w, h), (h, w), radius=0.02 * h)  # the character's pixels
-
     vis = np.array(before, np.uint8)
     vis[expected] = (0.6 * vis[expected] + 0.4 * np.array([0, 120, 255])).astype(np.uint8)
     vis[diff] = (255, 0, 0)
@@ -384,6 +396,10 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
     # Reset returns to the neutral picture.
     assert (np.abs(back - before).max(-1) > 40).sum() < 0.02 * n_diff
     # Capture playback shows the reconstructed vertices: its last frame draws like `after` (the
-    # character's pixels; the panel on the right now shows the input frame).
-    assert ((np.abs(capture - after).max(-1) > 40) & silhouette).sum() < 0.02 * n_diff
+    # character's pixels; the panel on the right now shows the input frame). The outline's
+    # antialiasing is left out: SwiftShader sometimes settles on a different edge blend for the
+    # same geometry (a 1 px ring, ~1000 px here), which says nothing about the pose drawn.
+    drawn = np.abs(after - 255).max(-1) > 40
+    interior = ndimage.binary_erosion(drawn, iterations=2) & silhouette
+    assert ((np.abs(capture - after).max(-1) > 40) & interior).sum() < 0.02 * n_diff
     assert n_images >= 1  # the input frame is in the panel
