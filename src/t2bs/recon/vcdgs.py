@@ -45,13 +45,24 @@ moving vertices of a mouth prompt are out of sight at rest: the mouth interior, 
 of the head. (The shares quoted before this note's revision, 94 % of moving pairs hidden from the
 canonical view, came from a depth test at 128 px, which marks most truly visible vertices hidden;
 recon/tracks.rest_visibility now tests at 1024 px: 43 % of facecap's vertices are seen by some
-training view.) On facecap mouth wide, the mouth bag and teeth (~1400 vertices at mouth height,
-hidden at rest) carry ~80 % of the remaining error, their lower half moving 40 % of the jaw's drop.
-LBS itself bounds this: an oracle that gives each of the 400 control points the rigid motion that
-best fits the true motion of the visible vertices bound to it (knn 10) reaches a p2p-moving ratio of
-0.35 (mouth interior 0.50), because control points straddle both jaws; with 1200 control points 0.13
-(800: 0.21). So facecap mouth wide cannot reach the 0.25 target at k = 400; the earlier finding that
-more control points train worse predates the track term and is worth re-measuring.
+training view.) On facecap mouth wide (ratio 0.463 with tracks): vertices seen at rest by some
+training view are 42 % of the moving ones and reach 0.24; the hidden ones carry 80 % of the error.
+Split by mesh part: facecap's teeth (twelve separate 34-49-vertex parts, none seen at rest) carry
+~55 % of the error at a ratio of 0.97-1.09, i.e. they follow the head and not the jaw; the face part
+21 % (ratio 0.32). Nothing ties a hidden part to the jaw: the lower teeth's best-matching seen
+vertices (by true trajectory) are the chin's, 0.05-0.08 diag away, while the nearest seen ones sit
+at mouth height (0.03-0.04 diag) and mix both jaws: moving each hidden part rigidly with its
+20-100 nearest seen vertices gives those parts 0.69 even from the *true* motion of the seen
+vertices (0.72 from the reconstruction; overall 0.463 -> 0.454). Picking the part's motion among
+nearby regions by the images where the open mouth shows it is the next thing to try.
+An earlier oracle (each control point gets the rigid motion that best fits the true motion of the
+seen vertices bound to it) gave 0.35 at k = 400, 0.21 at 800 and 0.13 at 1200, but it gave control
+points with no seen vertex their true motion, so it is not a bound on what images can recover:
+k = 800 with tracks trained to 0.486 (k = 400: 0.463, paired). Dropping the local prior on control
+points whose cell is hidden at rest (so that they follow their neighbours through rigidity) gave
+0.482. At k = 400 the teeth own no control point: they blend the face's and those of a hidden
+166-vertex part behind them, whose 23 control points have rigidity neighbours only on that part
+(ranked by the same part-aware distance as the binding), an island no image term reaches at rest.
 Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate
 34-49-vertex parts) do not follow the jaw at all
 (their error equals static), and the global stage absorbs part of the jaw opening as head pitch,
