@@ -81,7 +81,7 @@ def test_api_shapes_captures_retarget(project):
 
         # Capture: the reconstructed frame and its canonical-view input frame.
         assert app.capture_ids == [CAPTURE_ID]
-        app.show_capture(CAPTURE_ID, frame=3)
+        app.show_capture(CAPTURE_ID, frame=2)
         assert app.mode == ("capture", CAPTURE_ID, 2)
         np.testing.assert_array_equal(app.current_vertices(), info["recon"][2])
         np.testing.assert_array_equal(app._capture_image.image, info["frames"][1, 2])  # canonical view = 1 of 3
