@@ -63,6 +63,8 @@ points whose cell is hidden at rest (so that they follow their neighbours throug
 0.482. At k = 400 the teeth own no control point: they blend the face's and those of a hidden
 166-vertex part behind them, whose 23 control points have rigidity neighbours only on that part
 (ranked by the same part-aware distance as the binding), an island no image term reaches at rest.
+Replacing half of those neighbours with the nearest control points on seen parts gave 0.448
+(single run, at the time budget): a step, within what one run varies, and not the default.
 Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate
 34-49-vertex parts) do not follow the jaw at all
 (their error equals static), and the global stage absorbs part of the jaw opening as head pitch,
