@@ -142,7 +142,11 @@ def test_losses_dssim_default_and_lpips_weights(tmp_path):
     assert float(perc(b, b)) == pytest.approx(0.0, abs=1e-6) and float(perc(b, 1 - b)) > 0
 
 
-def test_global_stage_recovers_known_rigid_motion():
+CUDA = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA"))
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA])
+def test_global_stage_recovers_known_rigid_motion(device):
     mesh = sphere_mesh(2, axes=(1.0, 0.8, 0.6))  # an ellipsoid: its outline pins the rotation
     rv = np.array([0.0, 0.25, 0.1])  # about 15 degrees
     tr = np.array([0.03, -0.02, 0.0])
@@ -150,11 +154,11 @@ def test_global_stage_recovers_known_rigid_motion():
     frames = np.stack([mesh.vertices, mesh.vertices @ rot.T + tr]).astype(np.float32)
     grid, static = splat_grid(mesh, frames)
     cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=40, static_iters=0, iterations=150, global_iters=150, num_control_points=16,
-                 batch_size=4, canonical_fraction=0.3, perceptual="none", lr_global=1e-2)
+                 batch_size=4, canonical_fraction=0.3, perceptual="none", lr_global=1e-2, device=device)
     from t2bs.recon.vcdgs import reconstruct_grid
 
     res = reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
-    g = res.model.global_se3.shared_table().detach().numpy()  # [T, 6]
+    g = res.model.global_se3.shared_table().detach().cpu().numpy()  # [T, 6]
     assert np.abs(g[0]).max() == 0.0  # frame 0 is the rest pose (anchored)
     r_err = roma.rotmat_geodesic_distance(roma.rotvec_to_rotmat(torch.tensor(g[1, :3], dtype=torch.float64)),
                                           torch.tensor(rot))
@@ -164,7 +168,8 @@ def test_global_stage_recovers_known_rigid_motion():
 
 
 @pytest.mark.slow
-def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
+@pytest.mark.parametrize("device", ["cpu", CUDA])
+def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error(device):
     mesh = sphere_mesh(2)
     v = mesh.vertices
     # Non-rigid: the upper half slides sideways (up to 0.1 = 8 % of the diagonal), the rest stays.
@@ -172,7 +177,7 @@ def test_two_frame_reconstruction_reduces_image_loss_and_vertex_error():
     frames = np.stack([v, v + w * np.array([0.1, 0.0, 0.0])]).astype(np.float32)
     grid, static = splat_grid(mesh, frames, size=64)
     cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=64, static_iters=0, iterations=300, global_iters=0, num_control_points=32,
-                 batch_size=4, perceptual="none", method="no_global")
+                 batch_size=4, perceptual="none", method="no_global", device=device)
     from t2bs.recon.vcdgs import evaluate_image_loss, reconstruct_grid
 
     res = reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)

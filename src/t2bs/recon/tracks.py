@@ -33,6 +33,9 @@ class VertexTracks:
     displacement: torch.Tensor  # [V, T, N, 2] float32 pixel motion of each vertex's rest pixel, frame 0 -> t
     weights: torch.Tensor  # [V, T, N] float32 1 where the track is valid (visible at rest, round trip ok), else 0
 
+    def to(self, device) -> "VertexTracks":
+        return VertexTracks(self.displacement.to(device), self.weights.to(device))
+
     def coverage(self) -> float:
         """Share of (view, frame, vertex) entries with a valid track."""
         return float(self.weights.mean())
@@ -100,22 +103,28 @@ def texture_strength(grey: np.ndarray) -> np.ndarray:
 
 
 def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], views: list[int], fb_px: float = 1.0,
-                   blur_px: float = 0.7, progress: bool = False, min_texture: float = 0.0) -> VertexTracks:
+                   blur_px: float = 0.7, progress: bool = False, min_texture: float = 0.0,
+                   workers: int = 0) -> VertexTracks:
     """Tracks of every vertex in ``views`` of ``images`` [V, T, H, W, 3] float 0..1 (rest pose at
     t = 0), seen by ``cameras`` [V] at the images' resolution. Views not listed get weight 0.
-    ``min_texture``: tracks start only where ``texture_strength`` of the rest image reaches it."""
+    ``min_texture``: tracks start only where ``texture_strength`` of the rest image reaches it.
+    ``workers``: views computed at once in threads (OpenCV's flow releases the GIL; each view has
+    its own flow engine, so the result does not depend on it); 0 = torch's thread count."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import cv2
     from tqdm import tqdm
 
-    cv2.setNumThreads(1)  # the flows are small; threads would fight torch's for the same cores
+    cv2.setNumThreads(1)  # parallel over views instead: one flow per thread, none fighting torch's
     nv, nt, h, w = images.shape[:4]
     n = mesh.num_vertices
     disp = np.zeros((nv, nt, n, 2), np.float32)
     weights = np.zeros((nv, nt, n), np.float32)
-    dis = _flow_engine()
     verts = mesh.vertices.astype(np.float64)
     visible = rest_visibility(mesh, cameras, views)
-    for v in tqdm(views, desc="vertex tracks", leave=False, disable=not progress):
+
+    def view_tracks(v: int) -> None:
+        dis = _flow_engine()
         u0 = cameras[v].project(verts)[0].astype(np.float32)  # [N, 2]
         frames = images[v].numpy()
         g0 = _grey(frames[0], blur_px)
@@ -129,6 +138,11 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
             ok = start & (np.linalg.norm(d + back, axis=-1) < fb_px)
             disp[v, t] = d
             weights[v, t] = ok
+
+    with ThreadPoolExecutor(max(1, min(len(views), workers or torch.get_num_threads()))) as pool:
+        for _ in tqdm(pool.map(view_tracks, views), total=len(views), desc="vertex tracks", leave=False,
+                      disable=not progress):
+            pass
     return VertexTracks(torch.from_numpy(disp), torch.from_numpy(weights))
 
 
@@ -137,7 +151,7 @@ def track_loss(x_t: torch.Tensor, x_0: torch.Tensor, viewmats: torch.Tensor, ks:
     """Huber (in pixels, / delta so that large errors count as L1) between the projected model
     motion x_t - x_0 ([B, N, 3] each, at (v, t) and (v, 0)) and the tracked motion, averaged over
     valid tracks. viewmats/ks [B, ...] are the batch's cameras."""
-    vi, ti = v_idx.cpu(), t_idx.cpu()
+    vi, ti = v_idx.to(tracks.weights.device), t_idx.to(tracks.weights.device)
     w = tracks.weights[vi, ti].to(x_t.device)  # [B, N]
     target = tracks.displacement[vi, ti].to(x_t.device)  # [B, N, 2]
     moved = project_points(x_t, viewmats, ks) - project_points(x_0, viewmats, ks)

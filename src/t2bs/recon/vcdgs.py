@@ -125,6 +125,16 @@ class TrainData:
     bias_alpha: torch.Tensor | None = None  # [V, H, W] same for alpha vs mask
     tracks: VertexTracks | None = None  # optical-flow vertex tracks (config.track_weight > 0)
 
+    def to(self, device) -> "TrainData":
+        """A copy whose per-step tensors (targets, masks, residuals, tracks) live on ``device``:
+        on a GPU a batch is then gathered there instead of copied over every step."""
+        from dataclasses import replace
+
+        def move(x):
+            return None if x is None else x.to(device)
+        return replace(self, images=move(self.images), masks=move(self.masks), bias_rgb=move(self.bias_rgb),
+                       bias_alpha=move(self.bias_alpha), tracks=move(self.tracks))
+
     @property
     def views(self) -> int:
         return int(self.images.shape[0])
@@ -239,7 +249,7 @@ def debias_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
     spill). Left alone, the optimiser explains that constant mismatch with geometry (it shrinks
     the head by a few %). Adding the rest-pose residual (splats - mesh, per view) to every frame
     of that view makes the loss measure change relative to the rest pose instead."""
-    vi, ti = v_idx.cpu(), t_idx.cpu()
+    vi, ti = v_idx.to(data.images.device), t_idx.to(data.images.device)
     rgb = data.images[vi, ti]
     mask = None if data.masks is None else data.masks[vi, ti]
     if data.bias_rgb is not None:
@@ -378,6 +388,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
 
     dev = _device(cfg)
     model.to(dev)
+    data = data.to(dev)
     vm, ks = camera_tensors(data.cameras, dev)
     w, h = data.size
     perceptual = PerceptualLoss(cfg.perceptual, cfg.lpips_weights).to(dev)
@@ -427,7 +438,6 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         out = model(v_idx, t_idx, refine=joint)
         r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
         tgt, msk = debias_targets(data, v_idx, t_idx)
-        tgt, msk = tgt.to(dev), None if msk is None else msk.to(dev)
         k = _coarse_level(step, warm, cfg.global_coarse, min(w, h)) if not joint else 0
         if k > 0:
             r, tgt, msk = _downsample(r, tgt, msk, 2 ** k)

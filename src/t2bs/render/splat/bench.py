@@ -1,5 +1,7 @@
 """Rasterizer benchmark: ms per forward+backward for the fast CPU path, the autograd reference and
-the dense all-pairs baseline on the same scenes, plus their max abs image difference.
+the dense all-pairs baseline on the same scenes, plus their max abs image difference; with CUDA
+and gsplat present, also gsplat on the GPU (``gsplat_ms``, synchronised) and its image difference
+to the CPU path (mean and max abs: the footprint cut-offs differ, see gsplat_backend.py).
 
 Scenes imitate what VCDGS renders: N Gaussians on a head-sized ellipsoid surface (flattened
 along the normal like a fitted surface, sizes matched to the sample spacing so the surface is
@@ -18,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from . import rasterize_gaussians
+from . import _gsplat_available, rasterize_gaussians
 
 CASES = {  # name -> (height = width, gaussians, cameras)
     "a": (128, 5000, 4),
@@ -62,6 +64,8 @@ def fwd_bwd(params, vm, K, size, backend, weights):
     loss = (out["rgb"] * weights[..., :3]).sum() + (out["alpha"] * weights[..., 3:4]).sum()
     loss = loss + (out["depth"] * weights[..., 4:5]).sum()
     loss.backward()
+    if vm.is_cuda:
+        torch.cuda.synchronize()
     dt = time.perf_counter() - t0
     return dt, {k: v.detach() for k, v in out.items()}
 
@@ -140,6 +144,14 @@ def run_case(name: str, repeats: int = 5, with_reference: bool = True, with_dens
         dense_s, dense = _timed(params, vm, K, size, "dense", weights, max(1, repeats // 5), per_camera=True)
         result["dense_ms"] = round(dense_s * 1e3, 1)
         diffs.append(_diff(fast_like(True), dense))
+    if torch.cuda.is_available() and _gsplat_available():
+        cuda = [p.cuda() for p in params]
+        fwd_bwd(cuda, vm.cuda(), K.cuda(), size, "gsplat", weights.cuda())  # warm-up (JIT load, allocator)
+        gs_s, gs = _timed(cuda, vm.cuda(), K.cuda(), size, "gsplat", weights.cuda(), repeats)
+        result["gsplat_ms"] = round(gs_s * 1e3, 2)
+        result["gsplat_device"] = torch.cuda.get_device_name()
+        d = (gs["rgb"].cpu() - fast["rgb"]).abs()
+        result["gsplat_vs_cpu_rgb_abs_diff"] = {"mean": float(d.mean()), "max": float(d.max())}
     if diffs:
         result["max_abs_diff"] = max(diffs)
     if depth_diffs:

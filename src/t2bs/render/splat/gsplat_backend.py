@@ -23,6 +23,14 @@ def _shared(x: torch.Tensor) -> bool:
     return x.shape[0] == 1 or x.stride(0) == 0
 
 
+def _batch_dims_supported() -> bool:
+    """gsplat >= 1.5 accepts leading batch dimensions (means [..., N, 3], viewmats [..., C, 4, 4])."""
+    import gsplat
+
+    major, minor = (int(x) for x in gsplat.__version__.split(".")[:2])
+    return (major, minor) >= (1, 5)
+
+
 def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near):
     """Inputs already broadcast to [C, N, ...] (see rasterize_gaussians); returns the same dict."""
     try:
@@ -41,9 +49,14 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, widt
         cols = colors[0] if _shared(colors) else colors
         render, alphas, _ = rasterization(f(means[0]), f(quats[0]), f(scales[0]), f(opacities[0]), f(cols),
                                           f(viewmats), f(Ks), **kw)
+    elif _batch_dims_supported():
+        # Per-camera sets (VCDGS deforms per (view, time)): each camera is a batch entry with its
+        # own Gaussians, one call for all of them.
+        render, alphas, _ = rasterization(f(means), f(quats), f(scales), f(opacities), f(colors),
+                                          f(viewmats[:, None]), f(Ks[:, None]), **kw)
+        render, alphas = render[:, 0], alphas[:, 0]
     else:
-        # Per-camera sets (VCDGS deforms per (view, time)): one call per camera works on every
-        # gsplat version (newer ones also accept leading batch dims, older ones do not).
+        # gsplat < 1.5 takes one Gaussian set per call.
         outs = [rasterization(f(means[c]), f(quats[c]), f(scales[c]), f(opacities[c]), f(colors[c]),
                               f(viewmats[c:c + 1]), f(Ks[c:c + 1]), **kw) for c in range(C)]
         render = torch.cat([o[0] for o in outs], 0)
