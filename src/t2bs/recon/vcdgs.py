@@ -67,8 +67,9 @@ Replacing half of those neighbours with the nearest control points on seen parts
 (single run, at the time budget): a step, within what one run varies, and not the default.
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
-difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine),
-not the default. 19 of facecap's 31 hidden parts (the back teeth, both sides) change no pixel of the
+difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine);
+over the 8 clean cases only facecap's mouth prompts change (tongue 0.350 -> 0.328; the turtle's 40 hidden
+parts, 160 vertices, and the blink / smile cases are unchanged), mean 0.275 -> 0.269: not the default. 19 of facecap's 31 hidden parts (the back teeth, both sides) change no pixel of the
 canonical view or of the views at +-43 deg in any frame, whatever motion they get: no image places
 them, and the ones that are seen pick candidates at 0.25-0.74 of their static error.
 Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate
