@@ -53,8 +53,7 @@ Split by mesh part: facecap's teeth (twelve separate 34-49-vertex parts, none se
 vertices (by true trajectory) are the chin's, 0.05-0.08 diag away, while the nearest seen ones sit
 at mouth height (0.03-0.04 diag) and mix both jaws: moving each hidden part rigidly with its
 20-100 nearest seen vertices gives those parts 0.69 even from the *true* motion of the seen
-vertices (0.72 from the reconstruction; overall 0.463 -> 0.454). Picking the part's motion among
-nearby regions by the images where the open mouth shows it is the next thing to try.
+vertices (0.72 from the reconstruction; overall 0.463 -> 0.454).
 An earlier oracle (each control point gets the rigid motion that best fits the true motion of the
 seen vertices bound to it) gave 0.35 at k = 400, 0.21 at 800 and 0.13 at 1200, but it gave control
 points with no seen vertex their true motion, so it is not a bound on what images can recover:
@@ -67,9 +66,10 @@ Replacing half of those neighbours with the nearest control points on seen parts
 (single run, at the time budget): a step, within what one run varies, and not the default.
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
-difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine);
-over the 8 clean cases only facecap's mouth prompts change (tongue 0.350 -> 0.328; the turtle's 40 hidden
-parts, 160 vertices, and the blink / smile cases are unchanged), mean 0.275 -> 0.269: not the default. 19 of facecap's 31 hidden parts (the back teeth, both sides) change no pixel of the
+difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
+Over the 8 clean cases only facecap's mouth prompts change (tongue 0.350 -> 0.328; the turtle's 40
+hidden parts, 160 vertices, and the blink / smile cases are unchanged), mean 0.275 -> 0.269: not the
+default. 19 of facecap's 31 hidden parts (the back teeth, both sides) change no pixel of the
 canonical view or of the views at +-43 deg in any frame, whatever motion they get: no image places
 them, and the ones that are seen pick candidates at 0.25-0.74 of their static error.
 Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate

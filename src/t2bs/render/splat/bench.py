@@ -146,8 +146,9 @@ def run_case(name: str, repeats: int = 5, with_reference: bool = True, with_dens
         diffs.append(_diff(fast_like(True), dense))
     if torch.cuda.is_available() and _gsplat_available():
         cuda = [p.cuda() for p in params]
-        fwd_bwd(cuda, vm.cuda(), K.cuda(), size, "gsplat", weights.cuda())  # warm-up (JIT load, allocator)
-        gs_s, gs = _timed(cuda, vm.cuda(), K.cuda(), size, "gsplat", weights.cuda(), repeats)
+        vm_c, K_c, w_c = vm.cuda(), K.cuda(), weights.cuda()
+        fwd_bwd(cuda, vm_c, K_c, size, "gsplat", w_c)  # warm-up (JIT load, allocator)
+        gs_s, gs = _timed(cuda, vm_c, K_c, size, "gsplat", w_c, repeats)
         result["gsplat_ms"] = round(gs_s * 1e3, 2)
         result["gsplat_device"] = torch.cuda.get_device_name()
         d = (gs["rgb"].cpu() - fast["rgb"]).abs()

@@ -13,6 +13,8 @@ The background is composited here (rgb + (1 - alpha) * bg) rather than via gspla
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from t2bs.errors import UserError
@@ -23,6 +25,7 @@ def _shared(x: torch.Tensor) -> bool:
     return x.shape[0] == 1 or x.stride(0) == 0
 
 
+@functools.cache
 def _batch_dims_supported() -> bool:
     """gsplat >= 1.5 accepts leading batch dimensions (means [..., N, 3], viewmats [..., C, 4, 4])."""
     import gsplat
