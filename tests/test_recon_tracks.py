@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from t2bs.recon.gaussians import camera_tensors
@@ -72,3 +73,13 @@ def test_track_loss_is_zero_at_the_true_motion_and_grows_away_from_it():
     # The rest pose as the view sees it (a static per-view offset) is not motion.
     bias = torch.tensor([0.0, 0.02, 0.0])
     assert float(track_loss(xt + bias, x0 + bias, vm, ks, tracks, v_idx, t_idx)) < 0.05 * off[1]
+    # Tracks starting on untextured pixels count flat_weight times as much: with 0, a wrong motion
+    # of those vertices costs nothing; with 1 they count like the others.
+    textured = torch.ones(true.shape[0], true.shape[2], dtype=torch.bool)
+    textured[:, 1::4] = False
+    wrong = xt.clone()
+    wrong[:, 1::4] += 0.05
+    flat = VertexTracks(true, w, textured)
+    assert float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=0.0)) < 1e-6
+    full = float(track_loss(wrong, x0, vm, ks, tracks, v_idx, t_idx))
+    assert full > 0.1 and float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=1.0)) == pytest.approx(full)

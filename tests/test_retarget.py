@@ -108,7 +108,8 @@ def test_parts_landmarks_procedural(fox, mesh_renderer):
 def test_arap_rotations_match_dense():
     """The solver's sparse local step (active vertices only) equals the plain per-vertex fit."""
     from t2bs.character.primitives import icosphere
-    from t2bs.retarget.solve import RetargetSolver, mesh_edges
+    from t2bs.geometry.mesh import mesh_edges
+    from t2bs.retarget.solve import RetargetSolver
 
     v, f = icosphere(2)
     rng = np.random.default_rng(0)

@@ -108,6 +108,14 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n.astype(np.float32)
 
 
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges [E, 2] of a triangle mesh."""
+    faces = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    return np.unique(e, axis=0)
+
+
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup of ``texture`` [H, W, 3] uint8 at ``uv`` [N, 2] -> [N, 3] float in [0, 1]."""
     h, w = texture.shape[:2]

@@ -70,8 +70,11 @@ class VCDGSConfig:
     track_views: str = "all"  # views with tracks: "all" training views or only the "canonical" one
     track_delta: float = 0.008  # Huber transition of the track term, fraction of the image's longer side (1 px at 128)
     track_fb: float = 0.008  # forward-backward flow round-trip tolerance for a valid track, same unit
-    track_min_texture: float = 0.001  # tracks start only on textured pixels: min eigenvalue of the 5x5 structure tensor
+    track_min_texture: float = 0.001  # a track is "textured" from this min eigenvalue of the 5x5 structure tensor
     #   (tracks.texture_strength, 128 px / 0..1 units); flat skin and straight edges leave flow to its smoothness prior
+    track_flat_weight: float = 1.0  # weight of tracks starting on untextured pixels, in the joint stage only (the warm-up
+    #   uses textured ones alone): flow there is filled in from edges and silhouettes, which follows a dropping jaw
+    #   but under-estimates a rigid turn of a plain surface. 0 = textured tracks only (the previous default)
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
     perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"
@@ -88,6 +91,8 @@ class VCDGSConfig:
     #   Paper-like defects, mouth wide, p2p moving: facecap 0.0175 -> 0.0151 (no_view 0.0154); clean grids: see README
     view_residual_weight: float = 1.0  # view-dependent part of the deformation stays small
     refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
+    output_smoothing: int = 4  # Laplacian smoothing steps on each output frame's non-rigid displacement (extract.
+    #   smooth_displacements): removes per-vertex fitting noise that tilts normals; 0 = the raw Gaussian centres
     # --- ablations ---
     method: str = "full"  # full | no_view | no_refine | no_lbs | no_global
     # --- misc ---

@@ -32,9 +32,11 @@ from t2bs.geometry.mesh import Mesh
 class VertexTracks:
     displacement: torch.Tensor  # [V, T, N, 2] float32 pixel motion of each vertex's rest pixel, frame 0 -> t
     weights: torch.Tensor  # [V, T, N] float32 1 where the track is valid (visible at rest, round trip ok), else 0
+    textured: torch.Tensor | None = None  # [V, N] bool: the track starts on a textured pixel (None = all do)
 
     def to(self, device) -> "VertexTracks":
-        return VertexTracks(self.displacement.to(device), self.weights.to(device))
+        return VertexTracks(self.displacement.to(device), self.weights.to(device),
+                            None if self.textured is None else self.textured.to(device))
 
     def coverage(self) -> float:
         """Share of (view, frame, vertex) entries with a valid track."""
@@ -107,7 +109,8 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
                    workers: int = 0) -> VertexTracks:
     """Tracks of every vertex in ``views`` of ``images`` [V, T, H, W, 3] float 0..1 (rest pose at
     t = 0), seen by ``cameras`` [V] at the images' resolution. Views not listed get weight 0.
-    ``min_texture``: tracks start only where ``texture_strength`` of the rest image reaches it.
+    ``min_texture``: ``textured`` marks the tracks starting where ``texture_strength`` of the rest
+    image reaches it (the others start on flat skin or straight edges; track_loss weighs them).
     ``workers``: views computed at once in threads (OpenCV's flow releases the GIL; each view has
     its own flow engine, so the result does not depend on it); 0 = torch's thread count."""
     from concurrent.futures import ThreadPoolExecutor
@@ -120,6 +123,7 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
     n = mesh.num_vertices
     disp = np.zeros((nv, nt, n, 2), np.float32)
     weights = np.zeros((nv, nt, n), np.float32)
+    textured = np.zeros((nv, n), bool)
     verts = mesh.vertices.astype(np.float64)
     visible = rest_visibility(mesh, cameras, views)
 
@@ -128,7 +132,8 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
         u0 = cameras[v].project(verts)[0].astype(np.float32)  # [N, 2]
         frames = images[v].numpy()
         g0 = _grey(frames[0], blur_px)
-        start = visible[v] & (_sample(texture_strength(g0)[..., None], u0)[:, 0] >= min_texture)
+        textured[v] = _sample(texture_strength(g0)[..., None], u0)[:, 0] >= min_texture
+        start = visible[v]
         weights[v, 0] = start
         for t in range(1, nt):
             gt = _grey(frames[t], blur_px)
@@ -143,16 +148,20 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
         for _ in tqdm(pool.map(view_tracks, views), total=len(views), desc="vertex tracks", leave=False,
                       disable=not progress):
             pass
-    return VertexTracks(torch.from_numpy(disp), torch.from_numpy(weights))
+    return VertexTracks(torch.from_numpy(disp), torch.from_numpy(weights), torch.from_numpy(textured))
 
 
 def track_loss(x_t: torch.Tensor, x_0: torch.Tensor, viewmats: torch.Tensor, ks: torch.Tensor, tracks: VertexTracks,
-               v_idx: torch.Tensor, t_idx: torch.Tensor, delta_px: float = 1.0) -> torch.Tensor:
+               v_idx: torch.Tensor, t_idx: torch.Tensor, delta_px: float = 1.0, flat_weight: float = 1.0) -> torch.Tensor:
     """Huber (in pixels, / delta so that large errors count as L1) between the projected model
     motion x_t - x_0 ([B, N, 3] each, at (v, t) and (v, 0)) and the tracked motion, averaged over
-    valid tracks. viewmats/ks [B, ...] are the batch's cameras."""
+    valid tracks. viewmats/ks [B, ...] are the batch's cameras. Tracks that start on untextured
+    pixels count ``flat_weight`` times as much as textured ones."""
     vi, ti = v_idx.to(tracks.weights.device), t_idx.to(tracks.weights.device)
-    w = tracks.weights[vi, ti].to(x_t.device)  # [B, N]
+    w = tracks.weights[vi, ti]  # [B, N]
+    if tracks.textured is not None and flat_weight != 1.0:
+        w = w * torch.where(tracks.textured[vi], 1.0, flat_weight)
+    w = w.to(x_t.device)
     target = tracks.displacement[vi, ti].to(x_t.device)  # [B, N, 2]
     moved = project_points(x_t, viewmats, ks) - project_points(x_0, viewmats, ks)
     err = torch.nn.functional.huber_loss(moved, target, delta=delta_px, reduction="none").sum(-1) / delta_px

@@ -4,7 +4,9 @@ Schedule: (1) fit the static Gaussians' scale/orientation (one per vertex plus o
 texture colours) to renders of the static mesh (gaussians.py); (2) global-only warm-up: only T_global(v, t) is optimised (the paper: "we first
 fit the global transformation"); (3) joint training of T_global, DeformMLP and RefineMLP. Each
 step renders a batch of random (view, time) pairs (a share of them at the canonical view,
-which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses.
+which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses;
+(4) the output: the vertex Gaussians' centres at the canonical view, each frame's non-rigid
+displacement lightly smoothed over the mesh (extract.smooth_displacements, config.output_smoothing).
 Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k-downsampled
 images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
 by default (no consistent gain in our runs). config.view_residual_static (on by default) keeps
@@ -27,15 +29,21 @@ do not depend on the character's size or on k):
   renders carry no shading) follow the global head motion instead of drifting.
 - track (our addition, recon/tracks.py; track_weight = 0 gives the paper's loss): projected vertex
   motion from frame 0 matches optical-flow tracks of the vertex's rest pixel (DIS flow, forward-backward
-  checked, textured pixels only), from the warm-up on. The splat loss moves a Gaussian only through
-  the pixels it covers; the tracks give every textured visible vertex a long-range target. Measured
-  (clean grids, quick preset, p2p moving / static, README): mean over turtle + facecap x 4 prompts
-  0.326 -> 0.275; facecap mouth wide 0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 ->
+  checked): tracks from textured pixels from the warm-up on, the others from the joint stage on.
+  The splat loss moves a Gaussian only through the pixels it covers; the tracks give every visible
+  vertex a long-range target. Measured with textured tracks only (clean grids, quick preset, p2p
+  moving / static): mean over turtle + facecap x 4 prompts 0.326 -> 0.275; facecap mouth wide 0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 ->
   0.25. Variants, paired runs at 1 thread on facecap (mouth wide / smiling): no tracks - / 0.25;
   tracks on every pixel 0.44 / 0.225, better on mouth wide, but flow on untextured pixels is
   filled in by its smoothness prior and biases the rigid motion (the synthetic ellipsoid test's
   roll came out 0.03 instead of 0.1 rad); textured only, min eigenvalue 1e-3 (default) 0.47 / -,
   3e-3 0.51 / 0.218; weight 0.2 decaying to 0 over the joint stage 0.46 / 0.24.
+  Untextured tracks in the joint stage only (config.track_flat_weight = 1, the default; the warm-up
+  keeps textured ones, so the rigid fit is not biased): on the turtle's plain green skin the jaw
+  has no texture, and the flow filled in from the lip line and the chin's outline is what opens the
+  mouth. Turtle mouth wide 0.328 -> 0.255 (seen, expression-moving vertices 0.545 -> 0.378; the
+  same tracks in every stage 0.254, at weight 0.3 0.268), facecap mouth wide 0.463 -> 0.440,
+  smiling 0.210 -> 0.214 (single runs, 2 threads, output smoothing on).
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
@@ -455,8 +463,11 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         if data.tracks is not None and cfg.track_weight > 0:
             if rest_seen is None or step % cfg.track_refresh == 0:
                 rest_seen = _rest_as_seen(model, data.views)
+            # Untextured tracks join in the joint stage only: their flow is filled in from edges and
+            # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
             terms["track"] = cfg.track_weight * track_loss(out["means"], rest_seen[v_idx], vm[v_idx], ks[v_idx], data.tracks, v_idx,
-                                                 t_idx, cfg.track_delta * max(w, h))
+                                                 t_idx, cfg.track_delta * max(w, h),
+                                                 flat_weight=cfg.track_flat_weight if joint else 0.0)
         if cfg.global_smooth_weight > 0 and model.global_se3 is not None and model.frames > 2:
             terms["global_smooth"] = cfg.global_smooth_weight * _global_smoothness(model)
         if joint:
@@ -551,7 +562,7 @@ def reconstruct_grid(mesh: Mesh, grid, cfg: VCDGSConfig, progress: bool = True, 
 
 
 def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key) -> ReconResult:
-    from t2bs.recon.extract import canonical_vertices
+    from t2bs.recon.extract import canonical_vertices, smooth_displacements
 
     t0 = time.time()
     data = prepare_data(grid, cfg)
@@ -564,7 +575,7 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
     deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
-    verts = canonical_vertices(model)
+    verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output_smoothing)
     return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"))
 
 

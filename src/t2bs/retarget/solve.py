@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from t2bs.geometry.mesh import mesh_edges
 from t2bs.retarget.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
 
 
@@ -37,13 +38,6 @@ class SolveConfig:
     eye_depth_weight: float = 1.0  # eyeball-behind-lids hinge
     ridge: float = 1e-7  # Tikhonov on the weights, relative to the largest diagonal entry
     iterations: int = 2  # ARAP local/global rounds per frame (warm-started)
-
-
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
-    """Unique undirected edges [E, 2] of a triangle mesh."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    return np.unique(e, axis=0)
 
 
 class RetargetSolver:
