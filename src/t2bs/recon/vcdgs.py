@@ -43,7 +43,14 @@ do not depend on the character's size or on k):
   has no texture, and the flow filled in from the lip line and the chin's outline is what opens the
   mouth. Turtle mouth wide 0.328 -> 0.255 (seen, expression-moving vertices 0.545 -> 0.378; the
   same tracks in every stage 0.254, at weight 0.3 0.268), facecap mouth wide 0.463 -> 0.440,
-  smiling 0.210 -> 0.214 (single runs, 2 threads, output smoothing on).
+  smiling 0.210 -> 0.214 (single runs, 2 threads, output smoothing on). What is left on the turtle's
+  mouth wide (0.255): the seen expression-moving vertices, 27 % of the moving ones, carry 48 % of the
+  error; the hidden mouth interior (11 %) 30 %, at 0.62 of its static error. Textured tracks there
+  are accurate (98 % of the moving seen vertices tracked, 0.3-0.45 px error, gain 0.96 on the true
+  motion); triangulated across views they reach 0.09-0.12 of static, which the reconstruction
+  with textured tracks only already matched (0.086-0.096). Untextured skin is the gap. With the
+  flat tracks, local_weight 0.005 gave 0.261 (without them, 0 gave 0.313 and rigidity 0.05 0.325,
+  from 0.328).
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
