@@ -32,12 +32,13 @@ do not depend on the character's size or on k):
   checked): tracks from textured pixels from the warm-up on, the others from the joint stage on.
   The splat loss moves a Gaussian only through the pixels it covers; the tracks give every visible
   vertex a long-range target. Measured with textured tracks only (clean grids, quick preset, p2p
-  moving / static): mean over turtle + facecap x 4 prompts 0.326 -> 0.275; facecap mouth wide 0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 ->
-  0.25. Variants, paired runs at 1 thread on facecap (mouth wide / smiling): no tracks - / 0.25;
-  tracks on every pixel 0.44 / 0.225, better on mouth wide, but flow on untextured pixels is
-  filled in by its smoothness prior and biases the rigid motion (the synthetic ellipsoid test's
-  roll came out 0.03 instead of 0.1 rad); textured only, min eigenvalue 1e-3 (default) 0.47 / -,
-  3e-3 0.51 / 0.218; weight 0.2 decaying to 0 over the joint stage 0.46 / 0.24.
+  moving / static): mean over turtle + facecap x 4 prompts 0.326 -> 0.275; facecap mouth wide
+  0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 -> 0.25. Variants, paired runs at 1
+  thread on facecap (mouth wide / smiling): no tracks - / 0.25; tracks on every pixel 0.44 / 0.225,
+  better on mouth wide, but flow on untextured pixels is filled in by its smoothness prior and
+  biases the rigid motion (the synthetic ellipsoid test's roll came out 0.03 instead of 0.1 rad);
+  textured only, min eigenvalue 1e-3 (default) 0.47 / -, 3e-3 0.51 / 0.218; weight 0.2 decaying
+  to 0 over the joint stage 0.46 / 0.24.
   Untextured tracks in the joint stage only (config.track_flat_weight = 1, the default; the warm-up
   keeps textured ones, so the rigid fit is not biased): on the turtle's plain green skin the jaw
   has no texture, and the flow filled in from the lip line and the chin's outline is what opens the
