@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from t2bs.geometry.mesh import mesh_edges
+
 
 @dataclass
 class ControlPoints:
@@ -55,8 +57,7 @@ def _surface_distances(vertices: np.ndarray, faces: np.ndarray | None, sources: 
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = mesh_edges(faces)
     length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
     n = v.shape[0]
     graph = coo_matrix((length, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
