@@ -76,3 +76,32 @@ def test_geometry_metrics_and_summary_table():
     assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_moving"] == pytest.approx(0.25)
     assert s["ratio_full_over_static"]["cube/p/clean"]["nc_better"]
     assert markdown(rows).count("\n") == 3
+
+
+def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
+    """A re-run with the same --json file and settings keeps finished rows; other settings or --fresh recompute."""
+    from t2bs.eval import bench_vcdgs
+
+    calls = []
+
+    def fake_case(name, mesh, prompt, defects, methods, *args, **kwargs):
+        calls.append((name, prompt, tuple(methods)))
+        return [{"asset": name, "prompt": prompt, "defects": defects, "method": m, "p2p_all": 0.1, "p2p_moving": 0.2,
+                 "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": float(len(calls))} for m in methods]
+
+    monkeypatch.setattr(bench_vcdgs, "run_case", fake_case)
+    monkeypatch.setattr(bench_vcdgs, "load_asset", lambda spec: (spec, None))
+    out = tmp_path / "bench.json"
+    run = lambda methods, **kw: bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], methods, json_path=out, **kw)
+    first = run(["full", "static"])
+    assert calls == [("a", "smiling", ("full", "static")), ("b", "smiling", ("full", "static"))]
+    assert run(["full", "static"])["rows"] == first["rows"] and len(calls) == 2  # nothing recomputed
+    both = run(["full", "no_lbs", "static"])  # only the new method runs, rows keep the requested order
+    assert calls[2:] == [("a", "smiling", ("no_lbs",)), ("b", "smiling", ("no_lbs",))]
+    assert [r["method"] for r in both["rows"]] == ["full", "no_lbs", "static"] * 2
+    assert both["rows"][0] == first["rows"][0]
+    run(["full"], options={"track_weight": 0.0})  # another configuration: old rows are not reused
+    assert calls[4:] == [("a", "smiling", ("full",)), ("b", "smiling", ("full",))]
+    assert "other settings" in capsys.readouterr().out
+    run(["full"], options={"track_weight": 0.0}, resume=False)
+    assert len(calls) == 8

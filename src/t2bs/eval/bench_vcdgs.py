@@ -12,7 +12,11 @@ views against the true mesh rendered there (same renderer and shading, no defect
 seconds per reconstruction. The "static" row is the neutral mesh for every frame.
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, p2p_all,
-p2p_moving, nc, psnr, ssim, seconds}, ...], "summary": {...}}`` (also written to ``--json``).
+p2p_moving, nc, psnr, ssim, seconds}, ...], "summary": {...}, "settings": {...}}`` (also written to
+``--json``, after every case). Resume: a re-run with the same ``--json`` file and the same settings
+(grid size, frames, held-out views, and the resolved VCDGS configuration, so a changed default
+counts as a change) keeps the rows already there and runs only the missing (asset, prompt, defects,
+method) combinations; ``--fresh`` starts over.
 """
 
 from __future__ import annotations
@@ -58,6 +62,16 @@ def heldout_images(mesh, vertices: np.ndarray, cameras, shading: str, renderer) 
                      for c in cameras])
 
 
+def case_config_overrides(preset_name: str, iterations: int, options: dict | None) -> dict:
+    """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
+    from t2bs.recon.config import preset
+
+    over = dict(options or {})
+    if iterations:
+        over.update(iterations=iterations, global_iters=min(preset(preset_name).global_iters, iterations // 5))
+    return over
+
+
 def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], preset_name: str, size: int,
              frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
              options: dict | None = None) -> list[dict]:
@@ -81,9 +95,8 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
             else:
-                over = {**(options or {}), "method": method, "holdout_views": tuple(holdout)}
-                if iterations:
-                    over.update(iterations=iterations, global_iters=min(preset(preset_name).global_iters, iterations // 5))
+                over = {**case_config_overrides(preset_name, iterations, options), "method": method,
+                        "holdout_views": tuple(holdout)}
                 cfg = preset(preset_name, **over)
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds = res.vertices, time.time() - t0
@@ -127,29 +140,69 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
+def bench_settings(preset_name: str, size: int, frames: int, holdout: tuple[int, ...], iterations: int,
+                   options: dict | None) -> dict:
+    """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
+    when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
+    from t2bs.recon.config import preset
+
+    config = preset(preset_name, **case_config_overrides(preset_name, iterations, options)).to_dict()
+    config.pop("method"), config.pop("holdout_views")
+    return {"preset": preset_name, "size": size, "frames": frames, "holdout_views": list(holdout),
+            "iterations": iterations or "preset", "options": options or {}, "config": config}
+
+
+def _row_key(r: dict) -> tuple:
+    return r["asset"], r["prompt"], r["defects"], r["method"]
+
+
+def previous_rows(json_path: Path | None, settings: dict) -> dict[tuple, dict]:
+    """Rows of an earlier run in ``json_path`` made with ``settings``, by (asset, prompt, defects, method)."""
+    if json_path is None or not Path(json_path).exists():
+        return {}
+    from t2bs.project import read_json, to_jsonable
+
+    try:
+        old = read_json(json_path)
+    except ValueError:
+        print(f"not resuming: {json_path} is not valid JSON", flush=True)
+        return {}
+    if not isinstance(old, dict) or old.get("settings") != to_jsonable(settings):
+        print(f"not resuming: {json_path} was made with other settings (it will be overwritten)", flush=True)
+        return {}
+    return {_row_key(r): r for r in old.get("rows", [])}
+
+
 def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods: list[str], preset_name: str = "quick",
               size: int = 128, frames: int = 16, holdout: tuple[int, ...] = (4, 10), iterations: int = 0,
-              json_path: Path | None = None, progress: bool = False, options: dict | None = None) -> dict:
+              json_path: Path | None = None, progress: bool = False, options: dict | None = None,
+              resume: bool = True) -> dict:
+    """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
+    and (``resume``) rows already in that file with the same settings are kept instead of recomputed."""
+    from t2bs.project import write_json
+
     bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
         raise UserError(f"unknown method {bad[0]!r}; use {', '.join(ALL_METHODS)}")
     loaded = [load_asset(a) for a in assets]
+    settings = bench_settings(preset_name, size, frames, holdout, iterations, options)
+    done = previous_rows(json_path, settings) if resume else {}
     rows: list[dict] = []
     print("     asset | prompt                           | defect | method    | p2p_all | p2p_mov | NC      | PSNR  | SSIM   | s", flush=True)
     for name, mesh in loaded:
         for d in defects:
             for p in prompts:
-                rows += run_case(name, mesh, p, d, methods, preset_name, size, frames, holdout, iterations, progress, options)
-                if json_path is not None:  # partial results survive an interruption
-                    from t2bs.project import write_json
-
-                    write_json(json_path, {"rows": rows, "summary": summarise(rows), "partial": True})
-    result = {"rows": rows, "summary": summarise(rows),
-              "settings": {"preset": preset_name, "size": size, "frames": frames, "holdout_views": list(holdout),
-                           "iterations": iterations or "preset", "options": options or {}}}
+                todo = [m for m in methods if (name, p, d, m) not in done]
+                new = run_case(name, mesh, p, d, todo, preset_name, size, frames, holdout, iterations, progress,
+                               options) if todo else []
+                for r in [done[(name, p, d, m)] for m in methods if m not in todo]:
+                    print(_row_line(r) + "  (kept)", flush=True)
+                by_method = {r["method"]: r for r in new}
+                rows += [by_method[m] if m in todo else done[(name, p, d, m)] for m in methods]
+                if json_path is not None:  # partial results survive an interruption and resume from here
+                    write_json(json_path, {"rows": rows, "summary": summarise(rows), "settings": settings, "partial": True})
+    result = {"rows": rows, "summary": summarise(rows), "settings": settings}
     if json_path is not None:
-        from t2bs.project import write_json
-
         write_json(json_path, result)
     return result
 
@@ -164,7 +217,8 @@ def bench_vcdgs_command(
     frames: int = typer.Option(16, help="Frames per grid."),
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
-    json_file: Path = typer.Option(None, "--json", help="Also write the JSON here."),
+    json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
+    fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     assets = list(asset) if asset else ["turtle", "facecap", "procedural:a cartoon fox with big ears"]
@@ -172,6 +226,6 @@ def bench_vcdgs_command(
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
                        iterations=iterations, json_path=json_file,
-                       options=None if track_weight is None else {"track_weight": track_weight})
+                       options=None if track_weight is None else {"track_weight": track_weight}, resume=not fresh)
     print(markdown(result["rows"]))
     print(json.dumps(result, indent=1))
