@@ -16,7 +16,7 @@ from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import preset
 from t2bs.recon.control_points import build_control_points, farthest_point_sampling
 from t2bs.recon.gaussians import camera_tensors, init_static_gaussians, render
-from t2bs.recon.lbs import lbs, lbs_positions
+from t2bs.recon.lbs import blend_matrix, lbs, lbs_positions
 from t2bs.recon.losses import AlexLPIPS, PerceptualLoss, huber_pyramid, load_lpips
 from t2bs.video.grid import VideoGrid
 
@@ -79,6 +79,27 @@ def test_lbs_shared_rigid_transform_is_exact():
     t_k = (p @ rot.T + trans_world - p)[None]
     out = lbs_positions(x, p, rv.expand(1, 15, 3), t_k, torch.as_tensor(cps.neighbours), torch.as_tensor(cps.weights))
     assert torch.allclose(out[0], x @ rot.T + trans_world, atol=1e-5)
+
+
+def test_lbs_sparse_blend_matches_the_gather_reference():
+    """The sparse-matmul blend (the model's path) equals the gather over neighbours, values and gradients."""
+    rng = np.random.default_rng(2)
+    x = torch.tensor(rng.normal(size=(300, 3)), dtype=torch.float32)
+    cps = build_control_points(x.numpy(), None, k=25, knn=6)
+    p, nb, w = torch.as_tensor(cps.positions), torch.as_tensor(cps.neighbours), torch.as_tensor(cps.weights)
+    q_rest = roma.random_unitquat(300)
+    matrix = blend_matrix(nb, w, 25)
+    assert matrix.shape == (300, 25) and torch.allclose(matrix.to_dense().sum(1), torch.ones(300), atol=1e-5)
+    results = []
+    for m in (None, matrix):
+        rv = (0.3 * torch.randn(3, 25, 3, generator=torch.Generator().manual_seed(0))).requires_grad_()
+        tr = (0.1 * torch.randn(3, 25, 3, generator=torch.Generator().manual_seed(1))).requires_grad_()
+        xt, qt = lbs(x, q_rest, p, rv, tr, nb, w, m)
+        (xt.square().sum() + (qt * torch.linspace(-1, 1, 4)).sum()).backward()
+        results.append((xt.detach(), qt.detach(), rv.grad, tr.grad))
+    for ref, fast in zip(*results):
+        assert torch.allclose(ref, fast, atol=1e-5)
+    assert results[0][0].sub(x).abs().max() > 0.05  # the transforms really move the points
 
 
 def test_control_point_weights_sum_to_one_and_spread():

@@ -23,7 +23,7 @@ import roma
 import torch
 from torch import nn
 
-from t2bs.recon.lbs import apply_rigid, lbs
+from t2bs.recon.lbs import apply_rigid, blend_matrix, lbs
 
 
 def fourier(x: torch.Tensor, freqs: int) -> torch.Tensor:
@@ -184,6 +184,8 @@ class VCDGSModel(nn.Module):
         self.register_buffer("cp", torch.as_tensor(cp_positions, dtype=f32))  # [K, 3]
         self.register_buffer("neighbours", torch.as_tensor(neighbours, dtype=torch.int64))  # [N, knn]
         self.register_buffer("weights", torch.as_tensor(weights, dtype=f32))  # [N, knn]
+        # The same weights as a sparse [N, K] matrix: LBS as one sparse matmul (lbs.blend_matrix); rebuilt, not saved.
+        self.register_buffer("blend", blend_matrix(self.neighbours, self.weights, len(self.cp)), persistent=False)
         self.views, self.frames, self.canonical_view = views, frames, canonical_view
         self.use_view, self.use_refine, self.use_lbs, self.use_global = cfg.use_view, cfg.use_refine, cfg.use_lbs, cfg.use_global
         self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view,
@@ -219,7 +221,8 @@ class VCDGSModel(nn.Module):
         shared, res = self.control_transforms(v_idx, t_idx, use_view)
         local = shared + res  # [B, P, 6]
         if self.use_lbs:
-            x, q = lbs(self.means, self.quats, self.cp, local[..., :3], local[..., 3:], self.neighbours, self.weights)
+            x, q = lbs(self.means, self.quats, self.cp, local[..., :3], local[..., 3:], self.neighbours, self.weights,
+                           self.blend)
         else:
             rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, N, 3, 3]: each Gaussian about itself
             x = self.means[None] + local[..., 3:]

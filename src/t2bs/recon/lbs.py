@@ -21,9 +21,22 @@ def matvec(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (m * x[..., None, :]).sum(-1)
 
 
+def blend_matrix(neighbours: torch.Tensor, weights: torch.Tensor, num_points: int) -> torch.Tensor:
+    """neighbours/weights [N, knn] -> the same LBS weights as a sparse [N, K] matrix (COO, coalesced).
+
+    Blending with it is one sparse matmul whose backward is another (W^T grad); the gather path
+    materialises [B, N, knn, 16] and scatters it back in the backward, ~5x slower on a 23.5k-vertex
+    mesh on CPU. Both give the same blend (``_blend`` with and without ``matrix``, tested)."""
+    n, knn = neighbours.shape
+    rows = torch.arange(n, device=neighbours.device).repeat_interleave(knn)
+    idx = torch.stack([rows, neighbours.reshape(-1)])
+    return torch.sparse_coo_tensor(idx, weights.reshape(-1), (n, num_points), check_invariants=True).coalesce()
+
+
 def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbours: torch.Tensor,
-           weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Blend per-control-point transforms per Gaussian with one gather.
+           weights: torch.Tensor, matrix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Blend per-control-point transforms per Gaussian: a sparse matmul with ``matrix`` (``blend_matrix``),
+    else the reference gather over ``neighbours`` / ``weights``.
 
     -> (M [B, N, 3, 3] blended rotation matrices, b [B, N, 3] blended offsets, q [B, N, 4] XYZW
     blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k)."""
@@ -32,16 +45,21 @@ def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbour
     q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
     q = torch.where(q[..., 3:4] < 0, -q, q)  # one hemisphere, so that the average is meaningful
     packed = torch.cat([rot.flatten(-2), off, q], -1)  # [B, K, 16]
-    blended = (weights[None, :, :, None] * packed[:, neighbours]).sum(2)  # [B, N, 16]
+    if matrix is None:
+        blended = (weights[None, :, :, None] * packed[:, neighbours]).sum(2)  # [B, N, 16]
+    else:
+        b, k, c = packed.shape
+        blended = torch.sparse.mm(matrix, packed.transpose(0, 1).reshape(k, b * c)).reshape(-1, b, c).transpose(0, 1)
     bq = blended[..., 12:]
     return blended[..., :9].unflatten(-1, (3, 3)), blended[..., 9:12], bq / bq.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
-        neighbours: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        neighbours: torch.Tensor, weights: torch.Tensor, matrix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """x [N, 3], q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3] (about p_k), neighbours/weights
-    [N, knn] -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
-    m, b, q = _blend(rotvec, trans, p, neighbours, weights)
+    [N, knn], optional ``matrix`` = blend_matrix(neighbours, weights, K) (faster, same result)
+    -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
+    m, b, q = _blend(rotvec, trans, p, neighbours, weights, matrix)
     xt = matvec(m, x) + b
     return xt, roma.quat_product(q, q_rest[None].expand_as(q))
 
