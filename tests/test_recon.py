@@ -14,7 +14,7 @@ from t2bs.errors import MissingCheckpointError
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import preset
-from t2bs.recon.control_points import build_control_points, farthest_point_sampling
+from t2bs.recon.control_points import _surface_distances, build_control_points, farthest_point_sampling
 from t2bs.recon.gaussians import camera_tensors, init_static_gaussians, render
 from t2bs.recon.lbs import blend_matrix, lbs, lbs_positions
 from t2bs.recon.losses import AlexLPIPS, PerceptualLoss, huber_pyramid, load_lpips
@@ -164,6 +164,35 @@ def test_control_points_follow_the_surface_not_the_gap():
     plain = build_control_points(v, f, k=40, knn=6, geodesic=False)
     cross_plain = (plain.positions[:, 1] > 0.01)[plain.neighbours] != upper_v[:, None]
     assert (cross_plain * plain.weights).sum(1).mean() > 0.2  # Euclidean KNN leaks across the gap
+
+
+def test_control_points_weld_uv_seams():
+    """A sheet cut along a UV seam (the seam's vertices duplicated, as glTF exporters do) is still
+    one surface: distances along it equal those on the uncut sheet, so control points across the
+    seam still bind (unwelded, they sat behind the half-diagonal penalty of another part)."""
+    g = np.linspace(-0.3, 0.3, 13)
+    xx, zz = np.meshgrid(g, g)
+    v = np.stack([xx.ravel(), 0.1 * np.sin(3 * xx.ravel()), zz.ravel()], 1)
+    faces = []
+    for i in range(12):
+        for j in range(12):
+            a = i * 13 + j
+            faces += [[a, a + 1, a + 13], [a + 1, a + 14, a + 13]]
+    f = np.array(faces, np.int64)
+    seam = np.arange(13) * 13 + 6  # column 6; faces right of it use copies of its vertices
+    copy = {int(s): len(v) + i for i, s in enumerate(seam)}
+    cut = f.copy()
+    right = v[f][:, :, 0].mean(1) > g[6]
+    cut[right] = np.vectorize(lambda i: copy.get(int(i), int(i)))(f[right])
+    v_cut = np.concatenate([v, v[seam]])
+    sources = np.array([0, 12, 84, 168])  # both sides of the seam
+    whole = _surface_distances(v, f, sources)
+    split = _surface_distances(v_cut, cut, sources)
+    assert np.allclose(split[:, :len(v)], whole) and np.allclose(split[:, len(v):], whole[:, seam])
+    cps = build_control_points(v_cut.astype(np.float32), cut, k=30, knn=6)
+    left_of_seam = np.nonzero(np.abs(v[:, 0] - g[5]) < 1e-6)[0]
+    right_cp = cps.positions[:, 0] > g[6] + 1e-6
+    assert (right_cp[cps.neighbours[left_of_seam]] * cps.weights[left_of_seam]).sum(1).mean() > 0.08  # unwelded: 0.0
 
 
 def test_losses_dssim_default_and_lpips_weights(tmp_path):

@@ -116,6 +116,24 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
+def weld_index(vertices: np.ndarray, tolerance: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """Weld coincident vertices: -> (node [N] int64 welded id of each vertex in 0..M-1, first [M] int64
+    a vertex of each node). Exporters split a vertex wherever its UV or normal jumps (texture seams,
+    hard edges, part borders), so ``faces`` alone cut one surface into islands; vertices whose
+    positions agree to ``tolerance`` x the bounding-box diagonal are one surface point."""
+    v = np.asarray(vertices, dtype=np.float64)
+    scale = float(np.linalg.norm(v.max(0) - v.min(0))) if len(v) else 1.0
+    key = np.round(v / ((scale or 1.0) * tolerance)).astype(np.int64)
+    _, first, node = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return node.ravel().astype(np.int64), first.astype(np.int64)
+
+
+def welded_edges(node: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges [E, 2] between welded nodes (``weld_index``), self-loops dropped."""
+    e = np.sort(np.asarray(node)[mesh_edges(faces)], axis=1)
+    return np.unique(e[e[:, 0] != e[:, 1]], axis=0)
+
+
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup of ``texture`` [H, W, 3] uint8 at ``uv`` [N, 2] -> [N, 3] float in [0, 1]."""
     h, w = texture.shape[:2]

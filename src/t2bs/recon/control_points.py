@@ -7,7 +7,8 @@ covariance is the spread of the vertices closest to it (its Voronoi cell on the 
 control point reaches further along the surface it covers than across it. Associations and
 weights are computed once on the rest pose and stay fixed (the paper's modular design).
 
-"Nearest" is measured along the mesh (shortest path over edges) where the mesh connects the
+"Nearest" is measured along the mesh (shortest path over edges, with the copies of a vertex that
+an exporter split at a UV or normal seam welded into one point) where the mesh connects the
 two points, and as the straight-line distance plus half the bounding-box diagonal where it does
 not (another part: eyeball vs eyelid, teeth vs lips): with a purely Euclidean
 KNN the upper lip would be skinned to lower-lip control points across a closed mouth, and the
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t2bs.geometry.mesh import mesh_edges
+from t2bs.geometry.mesh import weld_index, welded_edges
 
 
 @dataclass
@@ -57,11 +58,13 @@ def _surface_distances(vertices: np.ndarray, faces: np.ndarray | None, sources: 
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    e = mesh_edges(faces)
-    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
-    n = v.shape[0]
-    graph = coo_matrix((length, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
-    geo = dijkstra(graph, directed=False, indices=sources)  # [K, N], inf where not connected
+    # Paths run over the welded mesh: copies of a vertex split at a UV seam are one point.
+    node, first = weld_index(v)
+    e = welded_edges(node, faces)
+    length = np.linalg.norm(v[first[e[:, 0]]] - v[first[e[:, 1]]], axis=1)
+    m = len(first)
+    graph = coo_matrix((length, (e[:, 0], e[:, 1])), shape=(m, m)).tocsr()
+    geo = dijkstra(graph, directed=False, indices=node[sources])[:, node]  # [K, N], inf where not connected
     # Not connected: behind every control point of the vertex's own part, still ordered by distance.
     far = 0.5 * float(np.linalg.norm(v.max(0) - v.min(0)))
     return np.where(np.isfinite(geo), np.maximum(geo, eucl), eucl + far)

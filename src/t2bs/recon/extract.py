@@ -46,21 +46,17 @@ def smooth_displacements(vertices: np.ndarray, rest: np.ndarray, faces: np.ndarr
     import roma
     from scipy.sparse import coo_matrix, diags
 
-    from t2bs.geometry.mesh import mesh_edges
+    from t2bs.geometry.mesh import weld_index, welded_edges
 
     x = np.asarray(vertices, np.float64)
     if iterations <= 0 or len(faces) == 0:
         return np.asarray(vertices, np.float32).copy()
     rest = np.asarray(rest, np.float64)
     n = rest.shape[0]
-    scale = float(np.linalg.norm(rest.max(0) - rest.min(0))) or 1.0
-    _, node = np.unique(np.round(rest / (scale * 1e-7)).astype(np.int64), axis=0, return_inverse=True)
-    node = node.ravel()
-    m = int(node.max()) + 1
-    e = node[mesh_edges(faces)]
-    e = e[e[:, 0] != e[:, 1]]
+    node, first = weld_index(rest)
+    m = len(first)
+    e = welded_edges(node, faces)
     adj = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(m, m)).tocsr()
-    adj.data[:] = 1.0  # duplicate edges (welded seams) count once
     deg = np.asarray(adj.sum(1)).ravel()
     mean_of_neighbours = diags(1.0 / np.maximum(deg, 1.0)) @ adj
     has = (deg > 0)[:, None]
