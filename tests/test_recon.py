@@ -193,6 +193,9 @@ def test_control_points_weld_uv_seams():
     left_of_seam = np.nonzero(np.abs(v[:, 0] - g[5]) < 1e-6)[0]
     right_cp = cps.positions[:, 0] > g[6] + 1e-6
     assert (right_cp[cps.neighbours[left_of_seam]] * cps.weights[left_of_seam]).sum(1).mean() > 0.08  # unwelded: 0.0
+    # A seam vertex and its copy are bound identically, so the seam cannot open.
+    assert np.array_equal(cps.neighbours[seam], cps.neighbours[len(v):])
+    assert np.allclose(cps.weights[seam], cps.weights[len(v):])
 
 
 def test_losses_dssim_default_and_lpips_weights(tmp_path):
