@@ -52,6 +52,12 @@ do not depend on the character's size or on k):
   with textured tracks only already matched (0.086-0.096). Untextured skin is the gap. With the
   flat tracks, local_weight 0.005 gave 0.261 (without them, 0 gave 0.313 and rigidity 0.05 0.325,
   from 0.328).
+Control points bind over the welded mesh (control_points.py: copies of a vertex split at a UV seam
+are one surface point). Before, a textured glTF's UV islands bound as separate parts (the turtle:
+126 face-connected pieces, 3 after welding), free to tear apart where the images do not hold them.
+Measured (benchmarks/vcdgs.py, quick preset, single runs): clean grids, turtle 0.242 / 0.255 /
+0.201 / 0.240 -> 0.234 / 0.248 / 0.198 / 0.230 (blinking / mouth wide / smiling / tongue), facecap
+within 0.003 of before, mean 0.257 -> 0.253; paper-like defects, full mean p2p moving .00670 -> .00664.
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
