@@ -143,17 +143,20 @@ def test_output_smoothing_keeps_rigid_motion_and_removes_vertex_noise():
     assert np.allclose(out2[0], out2[-1], atol=1e-6)
 
 
+def _grid_sheet(n: int = 13, half: float = 0.3):
+    """A flat n x n vertex grid in the x-z plane over [-half, half]^2: (coordinates g [n], x [n*n],
+    z [n*n], faces [2 (n-1)^2, 3] int64), vertex i * n + j at (g[j], g[i])."""
+    g = np.linspace(-half, half, n)
+    xx, zz = np.meshgrid(g, g)
+    faces = [[a, a + 1, a + n] for a in range(n * n) if a % n < n - 1 and a < n * (n - 1)]
+    faces += [[a + 1, a + n + 1, a + n] for a in range(n * n) if a % n < n - 1 and a < n * (n - 1)]
+    return g, xx.ravel(), zz.ravel(), np.array(faces, np.int64)
+
+
 def test_control_points_follow_the_surface_not_the_gap():
     """Two parallel sheets 0.02 apart (lips of a closed mouth): skinning stays on each sheet."""
-    g = np.linspace(-0.3, 0.3, 13)
-    xx, zz = np.meshgrid(g, g)
-    sheet = np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], 1)
-    faces = []
-    for i in range(12):
-        for j in range(12):
-            a = i * 13 + j
-            faces += [[a, a + 1, a + 13], [a + 1, a + 14, a + 13]]
-    faces = np.array(faces, np.int64)
+    _, x, z, faces = _grid_sheet()
+    sheet = np.stack([x, np.zeros_like(x), z], 1)
     v = np.concatenate([sheet, sheet + [0, 0.02, 0]]).astype(np.float32)
     f = np.concatenate([faces, faces + len(sheet)]).astype(np.int32)
     cps = build_control_points(v, f, k=40, knn=6)
@@ -170,15 +173,8 @@ def test_control_points_weld_uv_seams():
     """A sheet cut along a UV seam (the seam's vertices duplicated, as glTF exporters do) is still
     one surface: distances along it equal those on the uncut sheet, so control points across the
     seam still bind (unwelded, they sat behind the half-diagonal penalty of another part)."""
-    g = np.linspace(-0.3, 0.3, 13)
-    xx, zz = np.meshgrid(g, g)
-    v = np.stack([xx.ravel(), 0.1 * np.sin(3 * xx.ravel()), zz.ravel()], 1)
-    faces = []
-    for i in range(12):
-        for j in range(12):
-            a = i * 13 + j
-            faces += [[a, a + 1, a + 13], [a + 1, a + 14, a + 13]]
-    f = np.array(faces, np.int64)
+    g, x, z, f = _grid_sheet()
+    v = np.stack([x, 0.1 * np.sin(3 * x), z], 1)
     seam = np.arange(13) * 13 + 6  # column 6; faces right of it use copies of its vertices
     copy = {int(s): len(v) + i for i, s in enumerate(seam)}
     cut = f.copy()
