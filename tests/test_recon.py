@@ -148,9 +148,10 @@ def _grid_sheet(n: int = 13, half: float = 0.3):
     z [n*n], faces [2 (n-1)^2, 3] int64), vertex i * n + j at (g[j], g[i])."""
     g = np.linspace(-half, half, n)
     xx, zz = np.meshgrid(g, g)
-    faces = [[a, a + 1, a + n] for a in range(n * n) if a % n < n - 1 and a < n * (n - 1)]
-    faces += [[a + 1, a + n + 1, a + n] for a in range(n * n) if a % n < n - 1 and a < n * (n - 1)]
-    return g, xx.ravel(), zz.ravel(), np.array(faces, np.int64)
+    i, j = np.divmod(np.arange(n * n), n)
+    a = (i * n + j)[(i < n - 1) & (j < n - 1)]  # each quad's lower-left corner
+    faces = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
+    return g, xx.ravel(), zz.ravel(), faces.astype(np.int64)
 
 
 def test_control_points_follow_the_surface_not_the_gap():
