@@ -15,7 +15,7 @@ from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import preset
 from t2bs.recon.control_points import _surface_distances, build_control_points, farthest_point_sampling
-from t2bs.recon.gaussians import camera_tensors, init_static_gaussians, render
+from t2bs.recon.gaussians import camera_tensors, init_static_gaussians, largest_faces, render
 from t2bs.recon.lbs import blend_matrix, lbs, lbs_positions
 from t2bs.recon.losses import AlexLPIPS, PerceptualLoss, huber_pyramid, load_lpips
 from t2bs.video.grid import VideoGrid
@@ -193,6 +193,25 @@ def test_control_points_weld_uv_seams():
     # A seam vertex and its copy are bound identically, so the seam cannot open.
     assert np.array_equal(cps.neighbours[seam], cps.neighbours[len(v):])
     assert np.allclose(cps.weights[seam], cps.weights[len(v):])
+
+
+def test_face_gaussian_cap_keeps_the_largest_triangles():
+    # A sphere whose upper half is subdivided once more: its triangles are 4x smaller there.
+    sphere = trimesh.creation.icosphere(2)
+    upper = np.flatnonzero(sphere.triangles_center[:, 2] > 0)
+    v, f = trimesh.remesh.subdivide(sphere.vertices, sphere.faces, face_index=upper)
+    mesh = Mesh(v.astype(np.float32), f.astype(np.int64))
+    coarse = int((v[f].mean(1)[:, 2] <= 0).sum())
+    capped = init_static_gaussians(mesh, max_face_gaussians=coarse)
+    assert capped.faces.shape == (coarse, 3) and capped.face_colors.shape == (coarse, 3)
+    assert capped.face_log_scale.shape == (coarse,)
+    # The kept ones are exactly the large (lower-half) triangles, in mesh order.
+    lower = mesh.faces[v[f].mean(1)[:, 2] <= 0]
+    np.testing.assert_array_equal(capped.faces, lower)
+    # No cap, or a cap above the count, keeps every triangle; vertex Gaussians never change.
+    full = init_static_gaussians(mesh, max_face_gaussians=0)
+    assert len(full.faces) == len(f) and len(largest_faces(v, f, len(f) + 1)) == len(f)
+    np.testing.assert_array_equal(capped.log_scales, full.log_scales)
 
 
 def test_losses_dssim_default_and_lpips_weights(tmp_path):

@@ -24,6 +24,10 @@ class VCDGSConfig:
     static_views_per_iter: int = 3  # views rendered per static-fit step
     face_gaussians: bool = True  # also one Gaussian per triangle, rebuilt from its deformed corners (covers faces
     #   that open up, e.g. a mouth; sharper silhouettes); outputs stay per vertex
+    max_face_gaussians: int = 10000  # face Gaussians only on this many of the largest triangles (0 = all). A training
+    #   step's cost grows with the Gaussian count; on a dense mesh at 128 px most triangles are under a pixel and
+    #   their corners' Gaussians already cover them (gaussians.largest_faces). Turtle (2.6k) and facecap (8k
+    #   triangles) keep all; the 47k-triangle demo fox goes from 70.5k to 33.5k Gaussians per render
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
     static_fit_colors: bool = False  # also fit colours (else the texture's; hidden Gaussians would get painted)
     debias_static: bool = False  # add the rest-pose residual (splats - mesh render, per view) to the targets (vcdgs.debias_targets)
@@ -146,7 +150,7 @@ PRESETS = {
     # §4.1 and the appendix: 2000 control points, 60k iterations, 512 px renders, wider MLPs.
     "paper": VCDGSConfig(resolution=512, static_iters=2000, num_control_points=2000, hidden=256, depth=6,
                          refine_hidden=64, refine_depth=3, pos_freqs=8, time_freqs=6, iterations=60000, global_iters=3000, batch_size=4,
-                         pyramid_levels=4, checkpoint_every=2000, device="auto", threads=0, time_budget_s=0.0),
+                         pyramid_levels=4, max_face_gaussians=0, checkpoint_every=2000, device="auto", threads=0, time_budget_s=0.0),
 }
 
 

@@ -111,8 +111,25 @@ def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale,
     return (torch.cat([means, fm], 1), torch.cat([quats, fq], 1), torch.cat([scales, fs], 1), torch.cat([colors, fc], 1))
 
 
-def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True) -> StaticGaussians:
-    """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length."""
+def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int) -> np.ndarray:
+    """The ``limit`` largest-area triangles of ``faces`` [F, 3] (all of them when F <= limit or
+    limit <= 0), in their original order -> [min(F, limit), 3].
+
+    Why the largest: a small triangle's corners sit within each other's vertex Gaussians (tangent
+    std = half the mean edge), so its face Gaussian adds little coverage; a large one leaves a gap
+    between its corners that only its face Gaussian fills."""
+    if limit <= 0 or len(faces) <= limit:
+        return faces
+    tri = vertices[faces].astype(np.float64)
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    keep = np.sort(np.argsort(-area, kind="stable")[:limit])
+    return faces[keep]
+
+
+def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True,
+                          max_face_gaussians: int = 0) -> StaticGaussians:
+    """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length; optionally one
+    per triangle, on at most ``max_face_gaussians`` of the largest ones (0 = every triangle)."""
     v = mesh.vertices.astype(np.float64)
     f = mesh.faces.astype(np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
@@ -132,7 +149,7 @@ def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussian
     colors = mesh.vertex_rgb().astype(np.float32)
     faces = face_colors = face_log_scale = None
     if with_face_gaussians:
-        faces = mesh.faces.astype(np.int64)
+        faces = largest_faces(mesh.vertices, mesh.faces.astype(np.int64), max_face_gaussians)
         if mesh.texture is not None and mesh.uv is not None:
             from t2bs.geometry.mesh import sample_texture
 

@@ -58,6 +58,12 @@ are one surface point). Before, a textured glTF's UV islands bound as separate p
 Measured (benchmarks/vcdgs.py, quick preset, single runs): clean grids, turtle 0.242 / 0.255 /
 0.201 / 0.240 -> 0.234 / 0.248 / 0.198 / 0.230 (blinking / mouth wide / smiling / tongue), facecap
 within 0.003 of before, mean 0.257 -> 0.253; paper-like defects, full mean p2p moving .00670 -> .00664.
+Face Gaussians sit on at most config.max_face_gaussians triangles (quick: 10k, the largest; paper: all).
+A step's cost follows the Gaussian count, and a dense mesh at 128 px has most triangles under a pixel,
+covered by their corners' vertex Gaussians. On the 23.5k-vertex demo fox (47k triangles, 70.5k -> 33.5k
+Gaussians; benchmarks/vcdgs.py, mild defects, 260 s budget) mouth wide p2p moving went .01290 / .01298 ->
+.00736 / .00731 (seeds 0 / 1; static .02341), smiling .00236 -> .00257 (static .01388); a 5k cap gave
+.01007 / .00233: below ~10k the coverage loss outweighs the extra steps. Turtle and facecap keep all.
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
 silhouettes and did not help in our runs.
@@ -238,7 +244,7 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
     view of ``data`` (made with the mesh renderer when None). With ``cfg.debias_static`` the
     per-view difference between the fitted splats and these renders is stored in
     ``data.bias_rgb`` / ``data.bias_alpha`` (see ``debias_targets``)."""
-    gs = init_static_gaussians(mesh, cfg.flatness, cfg.face_gaussians)
+    gs = init_static_gaussians(mesh, cfg.flatness, cfg.face_gaussians, cfg.max_face_gaussians)
     if cfg.static_iters > 0 or cfg.debias_static:
         if static_targets is None:
             shading = data.shading if cfg.static_shading == "auto" else cfg.static_shading

@@ -5,7 +5,7 @@ The model is linear, ``v(w) = neutral + sum_k w_k B_k``, so every term is solved
 - Landmarks (weight 1.0): mean over the 20 landmarks of the squared distance between their X, Y
   (frontal image plane) and the transferred targets; linear in w. Z is not constrained (a frontal
   video does not observe it; ARAP and the basis decide it).
-- ARAP (weight 0.1): mean over mesh edges of ``|(v_i - v_j) - R_ij (n_i - n_j)|^2`` with
+- ARAP (weight 0.1): mean over mesh edges (welded across UV seams) of ``|(v_i - v_j) - R_ij (n_i - n_j)|^2`` with
   ``R_ij = (R_i + R_j) / 2`` the local rotations. Solved the standard local/global way: the local
   step fits each vertex's rotation to the current pose (batched 3x3 SVD), the global step is then a
   K x K linear system because v is linear in w. The quadratic part ``(DB)^T (DB)`` is precomputed once.
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t2bs.geometry.mesh import mesh_edges
+from t2bs.geometry.mesh import weld_index, welded_edges
 from t2bs.retarget.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
 
 
@@ -50,7 +50,11 @@ class RetargetSolver:
         self.basis = np.asarray(basis, np.float64)  # [K, N, 3]
         self.k = self.basis.shape[0]
         self.ids = np.asarray(landmark_ids, int)  # [20]
-        self.edges = mesh_edges(np.asarray(faces, int))  # [E, 2]
+        # ARAP edges between welded vertices: an exporter splits a vertex at every UV seam, and
+        # without welding each copy would fit its rotation to half of its neighbourhood. Each weld
+        # node is represented by one of its vertices (the copies share the basis' motion).
+        node, first = weld_index(self.neutral)
+        self.edges = first[welded_edges(node, np.asarray(faces, int))]  # [E, 2] vertex ids
         i, j = self.edges[:, 0], self.edges[:, 1]
         self.e0 = self.neutral[i] - self.neutral[j]  # [E, 3] rest edges
         # [K, 3E] edge vectors of each basis shape; ARAP quadratic form (mean over edges).
