@@ -10,7 +10,7 @@ import roma
 import torch
 import trimesh
 
-from t2bs.errors import MissingCheckpointError
+from t2bs.errors import MissingCheckpointError, UserError
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import preset
@@ -212,6 +212,9 @@ def test_face_gaussian_cap_keeps_the_largest_triangles():
     full = init_static_gaussians(mesh, max_face_gaussians=0)
     assert len(full.faces) == len(f) and len(largest_faces(v, f, len(f) + 1)) == len(f)
     np.testing.assert_array_equal(capped.log_scales, full.log_scales)
+    assert preset("quick").max_face_gaussians == 10000 and preset("paper").max_face_gaussians == 0
+    with pytest.raises(UserError, match="max_face_gaussians"):
+        preset("quick", max_face_gaussians=-1)
 
 
 def test_losses_dssim_default_and_lpips_weights(tmp_path):

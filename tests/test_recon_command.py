@@ -37,6 +37,7 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
     assert np.allclose(verts[0], mesh.vertices, atol=1e-5)  # frame 0 anchored to the rest pose
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["perceptual_loss"] == "none" and "p2p_moving" in metrics["geometry"]
+    assert metrics["face_gaussians"] == 0  # face_gaussians=False: vertex Gaussians only
     anim = load_mesh(out / "animation.glb")
     assert len(anim.morph_targets) == 3
     assert np.allclose(anim.vertices + anim.morph_targets["frame0002"], verts[2], atol=1e-4)

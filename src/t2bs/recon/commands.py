@@ -45,6 +45,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "iterations": cfg.iterations, "steps_run": result.history.get("steps_run"),
          "stopped_at_budget": result.history.get("stopped_at_budget") is not None,
          "control_points": cfg.num_control_points, "resolution": cfg.resolution,
+         "face_gaussians": 0 if result.model.faces is None else int(result.model.faces.shape[0]),  # after max_face_gaussians
          "track_weight": cfg.track_weight,  # 0 = the paper's loss alone
          # share of (view, frame, vertex) entries with a valid optical-flow track
          "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),
@@ -112,6 +113,7 @@ def reconstruct_command(
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
+    face_gaussians: int = typer.Option(-1, help="Face Gaussians on at most this many of the largest triangles (0 = every triangle; -1 = the preset's: quick 10000, paper all)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
@@ -133,6 +135,8 @@ def reconstruct_command(
         overrides["lpips_weights"] = lpips_weights
     if track_weight is not None:
         overrides["track_weight"] = track_weight
+    if face_gaussians >= 0:
+        overrides["max_face_gaussians"] = face_gaussians
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
         overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
     cfg = preset(preset_name, **overrides)

@@ -119,6 +119,8 @@ class VCDGSConfig:
             raise UserError(f"perceptual must be auto|lpips|dssim|none, got {self.perceptual!r}")
         if self.track_views not in ("all", "canonical"):
             raise UserError(f"track_views must be all|canonical, got {self.track_views!r}")
+        if self.max_face_gaussians < 0:
+            raise UserError(f"max_face_gaussians must be >= 0 (0 = every triangle), got {self.max_face_gaussians}")
         if self.iterations < 1 or self.global_iters < 0 or self.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
         return self
