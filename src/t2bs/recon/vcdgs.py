@@ -62,7 +62,7 @@ Face Gaussians sit on at most config.max_face_gaussians triangles (quick: 10k, t
 A step's cost follows the Gaussian count, and a dense mesh at 128 px has most triangles under a pixel,
 covered by their corners' vertex Gaussians. On the 23.5k-vertex demo fox (47k triangles, 70.5k -> 33.5k
 Gaussians; benchmarks/vcdgs.py, mild defects, 260 s budget) mouth wide p2p moving went .01290 / .01298 ->
-.00736 / .00731 (seeds 0 / 1; static .02341), smiling .00236 -> .00257 (static .01388); a 5k cap gave
+.00736 / .00731 (seeds 0 / 1; static .02341), smiling .00236 / .00226 -> .00257 / .00253 (static .01388); a 5k cap gave
 .01007 / .00233: below ~10k the coverage loss outweighs the extra steps. Turtle and facecap keep all.
 Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
 residual correction (debias_static) exists but is off by default: it left ghost edges at moving
