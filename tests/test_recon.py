@@ -201,13 +201,13 @@ def test_face_gaussian_cap_keeps_the_largest_triangles():
     upper = np.flatnonzero(sphere.triangles_center[:, 2] > 0)
     v, f = trimesh.remesh.subdivide(sphere.vertices, sphere.faces, face_index=upper)
     mesh = Mesh(v.astype(np.float32), f.astype(np.int64))
-    coarse = int((v[f].mean(1)[:, 2] <= 0).sum())
+    lower = v[f].mean(1)[:, 2] <= 0  # the triangles left at their original size
+    coarse = int(lower.sum())
     capped = init_static_gaussians(mesh, max_face_gaussians=coarse)
     assert capped.faces.shape == (coarse, 3) and capped.face_colors.shape == (coarse, 3)
     assert capped.face_log_scale.shape == (coarse,)
     # The kept ones are exactly the large (lower-half) triangles, in mesh order.
-    lower = mesh.faces[v[f].mean(1)[:, 2] <= 0]
-    np.testing.assert_array_equal(capped.faces, lower)
+    np.testing.assert_array_equal(capped.faces, mesh.faces[lower])
     # No cap, or a cap above the count, keeps every triangle; vertex Gaussians never change.
     full = init_static_gaussians(mesh, max_face_gaussians=0)
     assert len(full.faces) == len(f) and len(largest_faces(v, f, len(f) + 1)) == len(f)

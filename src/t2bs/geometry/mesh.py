@@ -96,11 +96,16 @@ class Mesh:
         return self
 
 
+def face_area_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[F, 3] float64 unnormalised face normals (right-hand rule); each one's length is twice its triangle's area."""
+    tri = np.asarray(vertices, dtype=np.float64)[faces]  # [F, 3, 3]
+    return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[N, 3] unit normals: sum of adjacent face normals weighted by face area."""
     v = np.asarray(vertices, dtype=np.float64)
-    tri = v[faces]  # [F, 3, 3]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [F, 3], length = 2 * area
+    fn = face_area_normals(v, faces)
     n = np.zeros_like(v)
     for k in range(3):
         np.add.at(n, faces[:, k], fn)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from t2bs.geometry.camera import Camera
-from t2bs.geometry.mesh import Mesh
+from t2bs.geometry.mesh import Mesh, face_area_normals
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
 
 _warned_backend = False
@@ -120,8 +120,7 @@ def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int) -> np.nda
     between its corners that only its face Gaussian fills."""
     if limit <= 0 or len(faces) <= limit:
         return faces
-    tri = vertices[faces].astype(np.float64)
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = np.linalg.norm(face_area_normals(vertices, faces), axis=1)  # twice the area: the order is the same
     keep = np.sort(np.argsort(-area, kind="stable")[:limit])
     return faces[keep]
 
@@ -149,7 +148,7 @@ def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussian
     colors = mesh.vertex_rgb().astype(np.float32)
     faces = face_colors = face_log_scale = None
     if with_face_gaussians:
-        faces = largest_faces(mesh.vertices, mesh.faces.astype(np.int64), max_face_gaussians)
+        faces = largest_faces(v, f, max_face_gaussians)
         if mesh.texture is not None and mesh.uv is not None:
             from t2bs.geometry.mesh import sample_texture
 
