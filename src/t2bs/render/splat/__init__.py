@@ -5,8 +5,8 @@ differentiable w.r.t. means, quats, scales, opacities and colors (and, through a
 camera matrices). Backends:
 
 - "reference": plain PyTorch autograd (tile loop in Python); defines the rules (see reference.py).
-- "cpu": fused C++ kernel (OpenMP, JIT-built on first use into ~/.cache) with a hand-written
-  backward; projection stays in PyTorch. Same rules as the reference, so they agree to float
+- "cpu": fused C++ kernels (JIT-built on first use into ~/.cache) for the projection and the
+  compositing, with hand-written backwards. Same rules as the reference, so they agree to float
   rounding. Falls back to the reference with a warning when the kernel cannot be built.
 - "gsplat": ``gsplat.rasterization`` on CUDA tensors (same conventions; tiny differences in the
   footprint cut-off rules, agreement ~1e-3).
@@ -100,12 +100,14 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, w
 
         return rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near)
 
-    proj = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
     if backend == "cpu":
-        from .cpu import rasterize_cpu_projected
+        from .cpu import project_cpu, rasterize_cpu_projected
 
+        proj = project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
         acc_rgb, alpha, acc_depth = rasterize_cpu_projected(proj, width, height)
-    elif backend == "dense":
+        return finish(acc_rgb, alpha, acc_depth, background)
+    proj = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
+    if backend == "dense":
         from .dense import rasterize_dense_projected
 
         acc_rgb, alpha, acc_depth = rasterize_dense_projected(proj, width, height)
