@@ -1,4 +1,5 @@
-"""Pure-PyTorch (autograd) Gaussian splatting: the projection shared by every CPU backend and the
+"""Pure-PyTorch (autograd) Gaussian splatting: the projection (used by the reference and dense
+backends; projection.cpp is its C++ twin for the cpu backend, equal to float rounding) and the
 reference compositor that defines the rules the fast kernel must reproduce bit for bit.
 
 Rules (identical in every backend, so they agree to float rounding):
