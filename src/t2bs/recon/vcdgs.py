@@ -92,6 +92,10 @@ points whose cell is hidden at rest (so that they follow their neighbours throug
 (ranked by the same part-aware distance as the binding), an island no image term reaches at rest.
 Replacing half of those neighbours with the nearest control points on seen parts gave 0.448
 (single run, at the time budget): a step, within what one run varies, and not the default.
+A per-Gaussian translation MLP(x, t) added after LBS (width 64, 2 layers, L2 weight 0.1 in spacing
+units; frame 0 anchored), to free what the control points tie down, made facecap worse: clean mouth
+wide .01150 -> .01162, clean tongue .00795 -> .00828, paper-defect tongue .00892 -> .0094 (where
+no_lbs gets .00849): the gap to no_lbs is not a lack of per-vertex freedom. Not kept.
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
 difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
