@@ -95,7 +95,9 @@ Replacing half of those neighbours with the nearest control points on seen parts
 A per-Gaussian translation MLP(x, t) added after LBS (width 64, 2 layers, L2 weight 0.1 in spacing
 units; frame 0 anchored), to free what the control points tie down, made facecap worse: clean mouth
 wide .01150 -> .01162, clean tongue .00795 -> .00828, paper-defect tongue .00892 -> .0094 (where
-no_lbs gets .00849): the gap to no_lbs is not a lack of per-vertex freedom. Not kept.
+no_lbs gets .00849): the gap to no_lbs is not a lack of per-vertex freedom. Not kept. Nor is it the
+priors no_lbs lacks or has in another form (same case, full): rigidity 0.05 .00881, 0 .00870 (default
+0.2: .00892); local 0.005 .0091, 0 .00922 (default 0.02).
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
 difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
