@@ -100,19 +100,17 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, w
 
         return rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near)
 
+    project, composite = project_gaussians, rasterize_reference_projected
     if backend == "cpu":
         from .cpu import project_cpu, rasterize_cpu_projected
 
-        proj = project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
-        acc_rgb, alpha, acc_depth = rasterize_cpu_projected(proj, width, height)
-        return finish(acc_rgb, alpha, acc_depth, background)
-    proj = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
-    if backend == "dense":
+        project, composite = project_cpu, rasterize_cpu_projected
+    elif backend == "dense":
         from .dense import rasterize_dense_projected
 
-        acc_rgb, alpha, acc_depth = rasterize_dense_projected(proj, width, height)
-    else:
-        acc_rgb, alpha, acc_depth = rasterize_reference_projected(proj, width, height)
+        composite = rasterize_dense_projected
+    proj = project(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
+    acc_rgb, alpha, acc_depth = composite(proj, width, height)
     return finish(acc_rgb, alpha, acc_depth, background)
 
 

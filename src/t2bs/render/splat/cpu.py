@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from .reference import TILE, Projected, project_gaussians, rasterize_reference_projected
+from .reference import TILE, Projected, is_shared_set, project_gaussians, rasterize_reference_projected
 
 _HERE = Path(__file__).parent
 _SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp"]
@@ -61,6 +61,11 @@ def kernel_error() -> str | None:
     return _error
 
 
+def _grad_in(g, shape):
+    """An output's incoming gradient as the kernels take it: contiguous float32 on the CPU, zeros if None."""
+    return torch.zeros(shape) if g is None else g.detach().cpu().float().contiguous()
+
+
 class _Project(torch.autograd.Function):
     """(means, quats, scales) [1 | C, N, k] -> (means2d, conics, depths), C++ both ways (projection.cpp)."""
 
@@ -81,11 +86,8 @@ class _Project(torch.autograd.Function):
         means, quats, scales, viewmats, Ks = ctx.saved_tensors
         C, N = viewmats.shape[0], means.shape[1]
 
-        def grad_in(g, shape):
-            return torch.zeros(shape) if g is None else g.contiguous()
-
-        grads = ext.project_backward(means, quats, scales, viewmats, Ks, *ctx.size, grad_in(g_means2d, (C, N, 2)),
-                                     grad_in(g_conics, (C, N, 3)), grad_in(g_depths, (C, N)))
+        grads = ext.project_backward(means, quats, scales, viewmats, Ks, *ctx.size, _grad_in(g_means2d, (C, N, 2)),
+                                     _grad_in(g_conics, (C, N, 3)), _grad_in(g_depths, (C, N)))
         # Per-camera gradients; a set shared by every camera ([1, N, k]) sums them (fixed order).
         g_means, g_quats, g_scales = (g if x.shape[0] == C else g.sum(0, keepdim=True)
                                       for g, x in zip(grads, (means, quats, scales)))
@@ -101,11 +103,10 @@ def project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, he
             or viewmats.requires_grad or Ks.requires_grad):
         return project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
 
-    def one_set(x):  # [C, N, k] broadcast view of one set -> [1, N, k] (projected once per camera, not copied)
-        return x[:1] if x.shape[0] == 1 or x.stride(0) == 0 else x
-
+    # A set shared by every camera goes in as [1, N, k] (not copied C times).
+    means, quats, scales = (x[:1] if is_shared_set(x) else x for x in (means, quats, scales))
     means2d, conics, depths, d2max, radii, valid = _Project.apply(
-        one_set(means), one_set(quats), one_set(scales), opacities, viewmats, Ks, int(width), int(height), float(near))
+        means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near))
     return Projected(means2d, conics, depths, opacities, colors, d2max, radii, valid)
 
 
@@ -132,12 +133,9 @@ class _SplatComposite(torch.autograd.Function):
         width, height = ctx.size
         C = args[4].shape[0]
 
-        def grad_in(g, shape):  # autograd materialises unused output grads as zeros already
-            return torch.zeros(shape) if g is None else g.detach().cpu().float().contiguous()
-
         g = ext.backward(*args, valid, width, height, TILE, offsets, ids, T_final, last,
-                         grad_in(g_rgb, (C, height, width, 3)), grad_in(g_alpha, (C, height, width)),
-                         grad_in(g_depth, (C, height, width)))  # [C, N, 10]
+                         _grad_in(g_rgb, (C, height, width, 3)), _grad_in(g_alpha, (C, height, width)),
+                         _grad_in(g_depth, (C, height, width)))  # [C, N, 10]
         dt, dev = ctx.dtypes, ctx.device
         return (g[..., 0:2].to(dev, dt[0]), g[..., 2:5].to(dev, dt[1]), g[..., 5].to(dev, dt[2]),
                 g[..., 6:9].to(dev, dt[3]), g[..., 9].to(dev, dt[4]), None, None, None, None, None)

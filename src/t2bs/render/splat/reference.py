@@ -61,6 +61,12 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
 
 
+def is_shared_set(x: torch.Tensor) -> bool:
+    """True for a [C, N, k] tensor that is one set broadcast to every camera (C = 1 or a stride-0
+    expand): the projection then computes its camera-independent parts once, not C times."""
+    return x.dim() == 3 and (x.shape[0] == 1 or x.stride(0) == 0)
+
+
 def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01) -> Projected:
     """EWA projection of N Gaussians into C cameras.
 
@@ -68,10 +74,7 @@ def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, wid
     ([C, N, ...]); opacities/colors are [C, N(, 3)]. Written with element-wise ops on small
     tensors (no batched 3x3 matmuls) because this runs thousands of times per fit.
     """
-    def shared(x):  # [C, N, ...] broadcast view of one set -> [N, ...] (compute once, not C times)
-        return x[0] if x.dim() == 3 and (x.shape[0] == 1 or x.stride(0) == 0) else x
-
-    means, quats, scales = shared(means), shared(quats), shared(scales)
+    means, quats, scales = (x[0] if is_shared_set(x) else x for x in (means, quats, scales))
     R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, None, :3, 3]  # [C, 1, 3]
     p_cam = torch.matmul(means, R.transpose(-1, -2)) + t  # [C, N, 3]
