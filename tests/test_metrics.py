@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from t2bs.eval.bench_vcdgs import markdown, summarise
+from t2bs.eval.bench_vcdgs import markdown, seen_vertices, summarise
 from t2bs.geometry.mesh import vertex_normals
 from t2bs.eval.metrics import geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
 
@@ -70,12 +70,41 @@ def test_geometry_metrics_and_summary_table():
     assert geo["p2p_all"] == 0 and geo["p2p_moving"] == 0 and geo["moving_fraction"] == pytest.approx(0.5)
     static = geometry_metrics(np.stack([v, v]), gt, v, f)
     assert static["p2p_moving"] == pytest.approx(0.1 / np.sqrt(3), rel=1e-5)
+    # p2p_seen counts only the seen vertices: a prediction right on the seen half and static on the other
+    seen = np.arange(len(v)) < 4
+    half = np.stack([v, np.where(seen[:, None], gt[1], v)])
+    geo = geometry_metrics(half, gt, v, f, seen=seen)
+    assert geo["p2p_seen"] == 0 and geo["seen_fraction"] == pytest.approx(0.5)
+    assert geo["p2p_moving"] == pytest.approx(0.5 * static["p2p_moving"], rel=1e-5)
     rows = [{"asset": "cube", "prompt": "p", "defects": "clean", "method": m, "p2p_all": x, "p2p_moving": x,
-             "nc": x, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0} for m, x in (("full", 0.01), ("static", 0.04))]
+             "p2p_seen": x / 2, "nc": x, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0} for m, x in (("full", 0.01), ("static", 0.04))]
     s = summarise(rows)
     assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_moving"] == pytest.approx(0.25)
+    assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_seen"] == pytest.approx(0.25)
     assert s["ratio_full_over_static"]["cube/p/clean"]["nc_better"]
-    assert markdown(rows).count("\n") == 3
+    assert s["mean"]["clean/full"]["p2p_seen"] == pytest.approx(0.005)
+    assert markdown(rows).count("\n") == 3 and "| 0.00500 |" in markdown(rows)
+    # a row kept from a file older than p2p_seen: shown as "-", left out of the mean and the ratio
+    del rows[0]["p2p_seen"]
+    s = summarise(rows)
+    assert "p2p_seen" not in s["mean"]["clean/full"] and "p2p_seen" not in s["ratio_full_over_static"]["cube/p/clean"]
+    assert markdown(rows).splitlines()[2].split(" | ")[6] == "-"
+
+
+def test_seen_vertices_union_over_frames_and_cameras(mesh_renderer):
+    """A small cube inside a larger one is hidden until a frame moves it out; the back faces stay hidden."""
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.geometry.mesh import Mesh
+
+    outer, f = cube()
+    mesh = Mesh(np.concatenate([0.4 * outer, 0.1 * outer]), np.concatenate([f, f + len(outer)]).astype(np.int32))
+    out = mesh.vertices.copy()
+    out[8:] += [0.35, 0.0, 0.0]  # the inner cube moved beside the outer one
+    cam = frontal_camera(256, elevation_deg=0.0)
+    front = mesh.vertices[:, 2] > 0
+    np.testing.assert_array_equal(seen_vertices(mesh, mesh.vertices[None], [cam], mesh_renderer), front & (np.arange(16) < 8))
+    # (the inner cube's side facing the camera is too oblique for the depth test's tolerance)
+    np.testing.assert_array_equal(seen_vertices(mesh, np.stack([mesh.vertices, out]), [cam], mesh_renderer), front)
 
 
 def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):

@@ -6,17 +6,21 @@ simulated generator defects, and VCDGS reconstructs it with every requested meth
 views (``--holdout``, default 4 and 10: azimuth -25.7 and +25.7 deg) are never trained on.
 
 Columns: p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
-and over those whose true displacement from the rest pose exceeds 0.5 % of the diagonal), NC
+and over those whose true displacement from the rest pose exceeds 0.5 % of the diagonal), p2p_seen
+(the moving pairs of vertices that some training view sees in some true frame, depth-tested at
+1024 px; seen_fraction: their share. The rest, such as a mouth's back teeth, change no pixel of any
+input, so their error measures a method's prior for hidden geometry, not what it recovered), NC
 (mean 1 - cos of vertex normals), PSNR / SSIM of the reconstructed mesh rendered at the held-out
 views against the true mesh rendered there (same renderer and shading, no defects), and wall
 seconds per reconstruction. The "static" row is the neutral mesh for every frame.
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, p2p_all,
-p2p_moving, nc, psnr, ssim, seconds}, ...], "summary": {...}, "settings": {...}}`` (also written to
+p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds}, ...], "summary": {...}, "settings": {...}}`` (also written to
 ``--json``, after every case). Resume: a re-run with the same ``--json`` file and the same settings
 (grid size, frames, held-out views, and the resolved VCDGS configuration, so a changed default
 counts as a change) keeps the rows already there and runs only the missing (asset, prompt, defects,
-method) combinations; ``--fresh`` starts over.
+method) combinations; ``--fresh`` starts over. Rows kept from a file written before p2p_seen existed
+show it as "-" and are left out of its means.
 """
 
 from __future__ import annotations
@@ -62,6 +66,17 @@ def heldout_images(mesh, vertices: np.ndarray, cameras, shading: str, renderer) 
                      for c in cameras])
 
 
+def seen_vertices(mesh, frames: np.ndarray, cameras, renderer) -> np.ndarray:
+    """[N] bool: vertices that some camera of ``cameras`` sees in some frame of ``frames`` [T, N, 3]."""
+    from t2bs.recon.tracks import VISIBILITY_SIZE
+
+    seen = np.zeros(mesh.num_vertices, bool)
+    for verts in frames:
+        for cam in cameras:
+            seen |= renderer.vertex_visibility(mesh, cam, vertices=verts, min_size=VISIBILITY_SIZE)
+    return seen
+
+
 def case_config_overrides(preset_name: str, iterations: int, options: dict | None) -> dict:
     """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
     from t2bs.recon.config import preset
@@ -88,6 +103,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
         gt = grid.gt_vertices
         held_cams = [grid.cameras[v] for v in holdout]
         gt_imgs = heldout_images(mesh, gt, held_cams, gcfg.shading, renderer)
+        seen = seen_vertices(mesh, gt, [c for v, c in enumerate(grid.cameras) if v not in holdout], renderer)
         rows = []
         for method in methods:
             t0 = time.time()
@@ -100,43 +116,50 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 cfg = preset(preset_name, **over)
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds = res.vertices, time.time() - t0
-            geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces)
+            geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
             rows.append({"asset": name, "prompt": prompt, "defects": defects, "method": method,
-                         "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "nc": geo["nc"],
+                         "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "p2p_seen": geo["p2p_seen"],
+                         "seen_fraction": geo["seen_fraction"], "nc": geo["nc"],
                          "psnr": psnr(imgs, gt_imgs), "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
                          "seconds": round(seconds, 2)})
             print(_row_line(rows[-1]), flush=True)
     return rows
 
 
+def _cells(r: dict) -> list[str]:
+    seen = f"{r['p2p_seen']:.5f}" if "p2p_seen" in r else "-"  # rows kept from a file older than the column
+    return [r["asset"], r["prompt"], r["defects"], r["method"], f"{r['p2p_all']:.5f}", f"{r['p2p_moving']:.5f}", seen,
+            f"{r['nc']:.5f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['seconds']:.1f}"]
+
+
 def _row_line(r: dict) -> str:
-    return (f"{r['asset']:>10} | {r['prompt'][:32]:<32} | {r['defects']:<6} | {r['method']:<9} | {r['p2p_all']:.5f} | "
-            f"{r['p2p_moving']:.5f} | {r['nc']:.5f} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['seconds']:.1f}")
+    c = _cells(r)
+    return f"{c[0]:>10} | {c[1][:32]:<32} | {c[2]:<6} | {c[3]:<9} | " + " | ".join(c[4:])
 
 
 def markdown(rows: list[dict]) -> str:
-    head = "| asset | prompt | defects | method | p2p_all | p2p_moving | NC | PSNR | SSIM | seconds |\n|---|---|---|---|---|---|---|---|---|---|\n"
-    return head + "\n".join(f"| {r['asset']} | {r['prompt']} | {r['defects']} | {r['method']} | {r['p2p_all']:.5f} | "
-                            f"{r['p2p_moving']:.5f} | {r['nc']:.5f} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['seconds']:.1f} |"
-                            for r in rows)
+    head = "| asset | prompt | defects | method | p2p_all | p2p_moving | p2p_seen | NC | PSNR | SSIM | seconds |\n" + "|---" * 11 + "|\n"
+    return head + "\n".join("| " + " | ".join(_cells(r)) + " |" for r in rows)
 
 
 def summarise(rows: list[dict]) -> dict:
-    """Mean per (defects, method) and the full/static p2p_moving ratio per case."""
+    """Mean per (defects, method) and the full/static p2p_moving (and p2p_seen) ratio per case. A mean of p2p_seen
+    is given only when every row of its (defects, method) has the column."""
     out: dict = {"mean": {}, "ratio_full_over_static": {}}
     for d in sorted({r["defects"] for r in rows}):
         for m in [m for m in ALL_METHODS if any(r["method"] == m for r in rows)]:
             sel = [r for r in rows if r["defects"] == d and r["method"] == m]
             if sel:
-                out["mean"][f"{d}/{m}"] = {k: float(np.mean([r[k] for r in sel])) for k in ("p2p_all", "p2p_moving", "nc", "psnr", "ssim", "seconds")}
+                keys = [k for k in ("p2p_all", "p2p_moving", "p2p_seen", "nc", "psnr", "ssim", "seconds") if all(k in r for r in sel)]
+                out["mean"][f"{d}/{m}"] = {k: float(np.mean([r[k] for r in sel])) for k in keys}
     for r in rows:
         if r["method"] != "full":
             continue
         st = [s for s in rows if s["method"] == "static" and (s["asset"], s["prompt"], s["defects"]) == (r["asset"], r["prompt"], r["defects"])]
         if st:
-            out["ratio_full_over_static"][f"{r['asset']}/{r['prompt']}/{r['defects']}"] = {
-                "p2p_moving": r["p2p_moving"] / max(st[0]["p2p_moving"], 1e-12), "nc_better": r["nc"] < st[0]["nc"]}
+            ratio = {k: r[k] / max(st[0][k], 1e-12) for k in ("p2p_moving", "p2p_seen") if k in r and k in st[0]}
+            out["ratio_full_over_static"][f"{r['asset']}/{r['prompt']}/{r['defects']}"] = {**ratio, "nc_better": r["nc"] < st[0]["nc"]}
     return out
 
 
@@ -188,7 +211,7 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
     settings = bench_settings(preset_name, size, frames, holdout, iterations, options)
     done = previous_rows(json_path, settings) if resume else {}
     rows: list[dict] = []
-    print("     asset | prompt                           | defect | method    | p2p_all | p2p_mov | NC      | PSNR  | SSIM   | s", flush=True)
+    print("     asset | prompt                           | defect | method    | p2p_all | p2p_mov | p2p_seen | NC      | PSNR  | SSIM   | s", flush=True)
     for name, mesh in loaded:
         for d in defects:
             for p in prompts:

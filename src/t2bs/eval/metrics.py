@@ -2,7 +2,9 @@
 
 p2p: mean vertex distance / bounding-box diagonal; NC: mean (1 - cos) between vertex normals;
 PSNR and SSIM of images in 0..1. Moving vertices: (frame, vertex) pairs whose true
-displacement from the rest pose exceeds a fraction (0.5 %) of the diagonal.
+displacement from the rest pose exceeds a fraction (0.5 %) of the diagonal. Seen vertices (our
+addition): those some training view sees in some frame; the others (a mouth's back teeth) change
+no pixel of any input image, so where a method puts them is its prior, not what it recovered.
 """
 
 from __future__ import annotations
@@ -70,9 +72,16 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
 
 
 def geometry_metrics(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, faces: np.ndarray,
-                     fraction: float = 0.005) -> dict:
-    """p2p_all, p2p_moving, nc for pred/gt [T, N, 3] against the rest pose [N, 3]."""
+                     fraction: float = 0.005, seen: np.ndarray | None = None) -> dict:
+    """p2p_all, p2p_moving, nc for pred/gt [T, N, 3] against the rest pose [N, 3]; with ``seen``
+    [N] bool also p2p_seen (moving pairs of seen vertices) and seen_fraction (their share of the
+    moving pairs)."""
     diag = bbox_diagonal(rest)
     mask = moving_mask(gt, rest, fraction, diag)
-    return {"p2p_all": p2p(pred, gt, diag), "p2p_moving": p2p(pred, gt, diag, mask),
-            "nc": normal_consistency(pred, gt, faces), "moving_fraction": float(mask.mean())}
+    out = {"p2p_all": p2p(pred, gt, diag), "p2p_moving": p2p(pred, gt, diag, mask),
+           "nc": normal_consistency(pred, gt, faces), "moving_fraction": float(mask.mean())}
+    if seen is not None:
+        seen_moving = mask & np.asarray(seen, bool)[None]
+        out["p2p_seen"] = p2p(pred, gt, diag, seen_moving)
+        out["seen_fraction"] = float(seen_moving.sum() / max(mask.sum(), 1))
+    return out
