@@ -134,3 +134,21 @@ def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
     assert "other settings" in capsys.readouterr().out
     run(["full"], options={"track_weight": 0.0}, resume=False)
     assert len(calls) == 8
+
+
+def test_benchmark_cli_passes_time_budget_and_track_weight(monkeypatch):
+    """--time-budget / --track-weight reach the VCDGS configuration (and so the resume settings); unset, the preset's."""
+    import typer
+    from typer.testing import CliRunner
+
+    from t2bs.eval import bench_vcdgs
+
+    seen = []
+    monkeypatch.setattr(bench_vcdgs, "run_bench", lambda *a, options=None, **kw: seen.append(options) or {"rows": []})
+    app = typer.Typer()
+    app.command()(bench_vcdgs.bench_vcdgs_command)
+    assert CliRunner().invoke(app, ["--asset", "facecap", "--time-budget", "0"]).exit_code == 0
+    assert CliRunner().invoke(app, ["--asset", "facecap", "--track-weight", "0.5"]).exit_code == 0
+    assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
+    assert seen == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None]
+    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[0])["config"]["time_budget_s"] == 0.0

@@ -240,15 +240,17 @@ def bench_vcdgs_command(
     frames: int = typer.Option(16, help="Frames per grid."),
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
+    time_budget: float = typer.Option(None, "--time-budget", help="Wall seconds per reconstruction (0 = no cap: every method runs all its steps, so a row depends on the seed only, not on the machine's speed or load; default: the preset's)."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     assets = list(asset) if asset else ["turtle", "facecap", "procedural:a cartoon fox with big ears"]
     meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
+    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget)) if v is not None}
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
                        iterations=iterations, json_path=json_file,
-                       options=None if track_weight is None else {"track_weight": track_weight}, resume=not fresh)
+                       options=options or None, resume=not fresh)
     print(markdown(result["rows"]))
     print(json.dumps(result, indent=1))

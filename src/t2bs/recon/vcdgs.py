@@ -98,6 +98,22 @@ wide .01150 -> .01162, clean tongue .00795 -> .00828, paper-defect tongue .00892
 no_lbs gets .00849): the gap to no_lbs is not a lack of per-vertex freedom. Not kept. Nor is it the
 priors no_lbs lacks or has in another form (same case, full): rigidity 0.05 .00881, 0 .00870 (default
 0.2: .00892); local 0.005 .0091, 0 .00922 (default 0.02).
+Seen and never-seen vertices (the benchmark's p2p_seen: moving vertices that some training view
+sees, depth-tested at 1024 px, in some true frame). On facecap 36-44 % of the static error of the
+mouth prompts sits on vertices no training view ever sees (back teeth, the mouth's floor), yet
+those are not what keeps the clean cases over 0.25: seen vertices reach 0.447 (mouth wide) and
+0.342 (tongue), never-seen ones 0.429 / 0.361. The seen misses are the lower front teeth, seen
+only while the mouth is open (ten 34-49-vertex parts, 3-4 % of the error each, at 0.89-0.99 of
+their static error), and the 166-vertex part behind them (0.999); the face part is at 0.232 with
+19 % of the error. At 128 px a tooth spans ~2 px and the upper teeth, which stay, cover the pixels
+where the lower ones sat, so the image loss has little to pull them with. Giving every part of
+>= 20 vertices its own control point (19 more, so a tooth moves rigidly with its own point)
+made it worse: mouth wide p2p moving .01150 -> .01181, p2p_seen .01322 -> .01433. Not kept.
+Under the time budget no_lbs (slower per step) runs out of time before its 800 steps, so its
+result moves with the machine's load: facecap tongue, paper defects, seed 0 gave .00849 (an
+earlier commit), .00876 and .00985 (this one, two runs the same day); full finishes its steps
+(.00892 / .00893). In the first of today's runs no_lbs's lead was on never-seen vertices only
+(seen: full .00975, no_lbs .00996; never seen: .00806 vs .00750).
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
 difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
