@@ -114,6 +114,13 @@ result moves with the machine's load: facecap tongue, paper defects, seed 0 gave
 earlier commit), .00876 and .00985 (this one, two runs the same day); full finishes its steps
 (.00892 / .00893). In the first of today's runs no_lbs's lead was on never-seen vertices only
 (seen: full .00975, no_lbs .00996; never seen: .00806 vs .00750).
+With every method on its 800 steps (benchmark --time-budget 0), facecap, paper defects: full ahead in
+3 of 4 (blinking .00282 / .00303, mouth wide .01274 / .01296, tongue .00893 / .00940; smiling .00491 /
+.00431), mean .00735 vs .00742; on p2p_seen in 4 of 4, mean .00831 vs .00893.
+Nor does a plainer extrapolation help: replacing the displacement of the vertices that no training
+view sees in the reconstructed frames by a Gaussian-kernel average of the seen vertices' (16-128
+neighbours, sigma 0.02-0.08) gave facecap tongue (paper) .00903-.00931 (from .00893), NC .0095-.0128
+(from .0062).
 Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
 clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
 difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
