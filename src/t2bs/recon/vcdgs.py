@@ -111,8 +111,8 @@ where the lower ones sat, so the image loss has little to pull them with. Giving
 made it worse: mouth wide p2p moving .01150 -> .01181, p2p_seen .01322 -> .01433. Not kept.
 Under the time budget no_lbs (slower per step) runs out of time before its 800 steps, so its
 result moves with the machine's load: facecap tongue, paper defects, seed 0 gave .00849 (an
-earlier commit), .00876 and .00985 (this one, two runs the same day); full finishes its steps
-(.00892 / .00893). In the first of today's runs no_lbs's lead was on never-seen vertices only
+earlier commit), .00876 and .00985 (commit 043bbbf, two runs the same day); full finishes its steps
+(.00892 / .00893). In the first of those two runs no_lbs's lead was on never-seen vertices only
 (seen: full .00975, no_lbs .00996; never seen: .00806 vs .00750).
 With every method on its 800 steps (benchmark --time-budget 0), facecap, paper defects: full ahead in
 3 of 4 (blinking .00282 / .00303, mouth wide .01274 / .01296, tongue .00893 / .00940; smiling .00491 /
