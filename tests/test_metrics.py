@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from t2bs.eval.bench_vcdgs import markdown, seen_vertices, summarise
+from t2bs.eval.bench_vcdgs import full_vs_markdown, markdown, seen_vertices, summarise
 from t2bs.geometry.mesh import vertex_normals
+from t2bs.errors import UserError
 from t2bs.eval.metrics import geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
 
 
@@ -91,6 +92,31 @@ def test_geometry_metrics_and_summary_table():
     assert markdown(rows).splitlines()[2].split(" | ")[6] == "-"
 
 
+def test_full_vs_ablations_counts_only_cases_both_ran():
+    def row(asset, method, moving, seen=None):
+        r = {"asset": asset, "prompt": "p", "defects": "paper", "method": method, "p2p_all": moving,
+             "p2p_moving": moving, "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0}
+        return r if seen is None else {**r, "p2p_seen": seen}
+
+    rows = [row("a", "full", 0.010, 0.020), row("a", "no_lbs", 0.012, 0.018), row("a", "static", 0.05, 0.05),
+            row("b", "full", 0.004, 0.006), row("b", "no_lbs", 0.003, 0.007), row("b", "no_view", 0.005, 0.008),
+            row("c", "no_view", 0.001, 0.001)]  # c has no full row: left out of the comparison
+    vs = summarise(rows)["full_vs"]
+    assert set(vs) == {"paper/no_lbs", "paper/no_view"}
+    assert vs["paper/no_lbs"]["cases"] == 2 and vs["paper/no_view"]["cases"] == 1
+    assert vs["paper/no_lbs"]["p2p_moving"] == pytest.approx({"full": 0.007, "ablation": 0.0075, "full_lower": 1})
+    assert vs["paper/no_lbs"]["p2p_seen"] == pytest.approx({"full": 0.013, "ablation": 0.0125, "full_lower": 1})
+    assert vs["paper/no_view"]["p2p_moving"] == pytest.approx({"full": 0.004, "ablation": 0.005, "full_lower": 1})
+    table = full_vs_markdown(vs).splitlines()
+    assert vs["paper/no_lbs"]["nc"] == pytest.approx({"full": 0.01, "ablation": 0.01, "full_lower": 0})
+    assert len(table) == 2 + 6
+    assert table[5] == "| paper | no_lbs | p2p_moving | 2 | 0.00700 | 0.00750 | 6.7 % | 1 of 2 |"
+    # a row without p2p_seen (an older file) drops that metric, not the comparison
+    del rows[4]["p2p_seen"]
+    vs = summarise(rows)["full_vs"]
+    assert "p2p_seen" not in vs["paper/no_lbs"] and vs["paper/no_lbs"]["p2p_moving"]["full_lower"] == 1
+
+
 def test_seen_vertices_union_over_frames_and_cameras(mesh_renderer):
     """A small cube inside a larger one is hidden until a frame moves it out; the back faces stay hidden."""
     from t2bs.geometry.camera import frontal_camera
@@ -136,8 +162,36 @@ def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
     assert len(calls) == 8
 
 
-def test_benchmark_cli_passes_time_budget_and_track_weight(monkeypatch):
-    """--time-budget / --track-weight reach the VCDGS configuration (and so the resume settings); unset, the preset's."""
+def _fake_case_in_a_process(name, mesh, prompt, defects, methods, *args):
+    """A benchmark case for the --workers test: module-level so that a spawned worker can import it."""
+    import os
+    import time
+
+    time.sleep(1.5 if name == "a" else 0.0)  # "a" finishes last
+    return [{"asset": name, "prompt": prompt, "defects": defects, "method": m, "p2p_all": 0.1, "p2p_moving": 0.2,
+             "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": float(os.getpid())} for m in methods]
+
+
+def test_benchmark_workers_run_cases_in_processes_and_keep_the_order(tmp_path, monkeypatch):
+    import json
+    import os
+
+    from t2bs.eval import bench_vcdgs
+
+    monkeypatch.setattr(bench_vcdgs, "run_case", _fake_case_in_a_process)
+    monkeypatch.setattr(bench_vcdgs, "load_asset", lambda spec: (spec, None))
+    out = tmp_path / "bench.json"
+    res = bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], ["full", "static"], json_path=out, workers=2)
+    assert [(r["asset"], r["method"]) for r in res["rows"]] == [("a", "full"), ("a", "static"), ("b", "full"), ("b", "static")]
+    pids = {r["asset"]: r["seconds"] for r in res["rows"]}
+    assert pids["a"] != pids["b"] and os.getpid() not in pids.values()
+    assert json.loads(out.read_text())["rows"] == res["rows"]
+    with pytest.raises(UserError, match="--workers"):
+        bench_vcdgs.run_bench(["a"], ["smiling"], ["clean"], ["full"], workers=0)
+
+
+def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
+    """--time-budget / --track-weight / --seed reach the VCDGS configuration (and so the resume settings); unset, the preset's."""
     import typer
     from typer.testing import CliRunner
 
@@ -150,5 +204,7 @@ def test_benchmark_cli_passes_time_budget_and_track_weight(monkeypatch):
     assert CliRunner().invoke(app, ["--asset", "facecap", "--time-budget", "0"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap", "--track-weight", "0.5"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
-    assert seen == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None]
+    assert CliRunner().invoke(app, ["--asset", "facecap", "--seed", "1"]).exit_code == 0
+    assert seen == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None, {"seed": 1}]
+    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[3])["config"]["seed"] == 1
     assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[0])["config"]["time_budget_s"] == 0.0

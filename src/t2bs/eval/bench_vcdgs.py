@@ -16,7 +16,10 @@ seconds per reconstruction. The "static" row is the neutral mesh for every frame
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, p2p_all,
 p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds}, ...], "summary": {...}, "settings": {...}}`` (also written to
-``--json``, after every case). Resume: a re-run with the same ``--json`` file and the same settings
+``--json``, after every case). The summary holds the mean per (defects, method), the full / static ratio per case,
+and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
+claim as mean p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
+table). Resume: a re-run with the same ``--json`` file and the same settings
 (grid size, frames, held-out views, and the resolved VCDGS configuration, so a changed default
 counts as a change) keeps the rows already there and runs only the missing (asset, prompt, defects,
 method) combinations; ``--fresh`` starts over. Rows kept from a file written before p2p_seen existed
@@ -144,9 +147,10 @@ def markdown(rows: list[dict]) -> str:
 
 
 def summarise(rows: list[dict]) -> dict:
-    """Mean per (defects, method) and the full/static p2p_moving (and p2p_seen) ratio per case. A mean of p2p_seen
-    is given only when every row of its (defects, method) has the column."""
-    out: dict = {"mean": {}, "ratio_full_over_static": {}}
+    """Mean per (defects, method), the full/static p2p_moving (and p2p_seen) ratio per case, and full against each
+    ablation over the cases both ran (``full_vs``). A mean of p2p_seen is given only when every row it averages has
+    the column."""
+    out: dict = {"mean": {}, "ratio_full_over_static": {}, "full_vs": {}}
     for d in sorted({r["defects"] for r in rows}):
         for m in [m for m in ALL_METHODS if any(r["method"] == m for r in rows)]:
             sel = [r for r in rows if r["defects"] == d and r["method"] == m]
@@ -160,7 +164,47 @@ def summarise(rows: list[dict]) -> dict:
         if st:
             ratio = {k: r[k] / max(st[0][k], 1e-12) for k in ("p2p_moving", "p2p_seen") if k in r and k in st[0]}
             out["ratio_full_over_static"][f"{r['asset']}/{r['prompt']}/{r['defects']}"] = {**ratio, "nc_better": r["nc"] < st[0]["nc"]}
+    out["full_vs"] = full_vs_ablations(rows)
     return out
+
+
+def full_vs_ablations(rows: list[dict]) -> dict:
+    """The paper's ablation claim (its table: p2p and NC), per (defects, ablation): over the (asset, prompt) cases where
+    both the full method and the ablation ran, the mean p2p_moving, p2p_seen and NC of each, and in how many cases
+    full is lower.
+    ``{"paper/no_lbs": {"cases": 8, "p2p_moving": {"full": .., "ablation": .., "full_lower": 6}, ...}}``."""
+    by_key = {_row_key(r): r for r in rows}
+    out: dict = {}
+    for d in sorted({r["defects"] for r in rows}):
+        for m in ALL_METHODS:
+            if m in ("full", "static"):
+                continue
+            pairs = [(by_key[(a, p, d, "full")], r) for (a, p, dd, mm), r in by_key.items()
+                     if dd == d and mm == m and (a, p, d, "full") in by_key]
+            if not pairs:
+                continue
+            entry: dict = {"cases": len(pairs)}
+            for k in ("p2p_moving", "p2p_seen", "nc"):
+                if all(k in f and k in r for f, r in pairs):
+                    entry[k] = {"full": float(np.mean([f[k] for f, _ in pairs])),
+                                "ablation": float(np.mean([r[k] for _, r in pairs])),
+                                "full_lower": sum(f[k] < r[k] for f, r in pairs)}
+            out[f"{d}/{m}"] = entry
+    return out
+
+
+def full_vs_markdown(full_vs: dict) -> str:
+    """``full_vs_ablations`` as a table: one line per (defects, ablation, metric)."""
+    lines = ["| defects | ablation | metric | cases | full mean | ablation mean | full lower by | full lower in |",
+             "|---" * 8 + "|"]
+    for key, e in full_vs.items():
+        d, m = key.split("/")
+        for k in ("p2p_moving", "p2p_seen", "nc"):
+            if k in e:
+                v = e[k]
+                lines.append(f"| {d} | {m} | {k} | {e['cases']} | {v['full']:.5f} | {v['ablation']:.5f} | "
+                             f"{100 * (1 - v['full'] / max(v['ablation'], 1e-12)):.1f} % | {v['full_lower']} of {e['cases']} |")
+    return "\n".join(lines)
 
 
 def bench_settings(preset_name: str, size: int, frames: int, holdout: tuple[int, ...], iterations: int,
@@ -196,34 +240,63 @@ def previous_rows(json_path: Path | None, settings: dict) -> dict[tuple, dict]:
     return {_row_key(r): r for r in old.get("rows", [])}
 
 
+def _finished_cases(fn, cases: list[tuple], workers: int, *args):
+    """Run ``fn(*case, *args)`` (``run_case``) for every case; yield (case index, rows) as each finishes. With workers > 1
+    the cases run in that many spawned processes (spawned, not forked: a forked child inherits torch's thread pool
+    and the parent's EGL context). Each reconstruction keeps its configured thread count, so its numbers do not
+    depend on ``workers``; its wall seconds and, under a time budget, its step count do."""
+    if workers <= 1:
+        for i, case in enumerate(cases):
+            yield i, fn(*case, *args)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(fn, *case, *args): i for i, case in enumerate(cases)}
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
+
+
 def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods: list[str], preset_name: str = "quick",
               size: int = 128, frames: int = 16, holdout: tuple[int, ...] = (4, 10), iterations: int = 0,
               json_path: Path | None = None, progress: bool = False, options: dict | None = None,
-              resume: bool = True) -> dict:
+              resume: bool = True, workers: int = 1) -> dict:
     """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
-    and (``resume``) rows already in that file with the same settings are kept instead of recomputed."""
+    and (``resume``) rows already in that file with the same settings are kept instead of recomputed. ``workers``:
+    cases run in parallel processes; the rows keep the (asset, defects, prompt, method) order whatever finishes first."""
     from t2bs.project import write_json
 
     bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
         raise UserError(f"unknown method {bad[0]!r}; use {', '.join(ALL_METHODS)}")
+    if workers < 1:
+        raise UserError(f"--workers must be at least 1, got {workers}")
     loaded = [load_asset(a) for a in assets]
     settings = bench_settings(preset_name, size, frames, holdout, iterations, options)
     done = previous_rows(json_path, settings) if resume else {}
-    rows: list[dict] = []
     print("     asset | prompt                           | defect | method    | p2p_all | p2p_mov | p2p_seen | NC      | PSNR  | SSIM   | s", flush=True)
-    for name, mesh in loaded:
-        for d in defects:
-            for p in prompts:
-                todo = [m for m in methods if (name, p, d, m) not in done]
-                new = run_case(name, mesh, p, d, todo, preset_name, size, frames, holdout, iterations, progress,
-                               options) if todo else []
-                for r in [done[(name, p, d, m)] for m in methods if m not in todo]:
-                    print(_row_line(r) + "  (kept)", flush=True)
-                by_method = {r["method"]: r for r in new}
-                rows += [by_method[m] if m in todo else done[(name, p, d, m)] for m in methods]
-                if json_path is not None:  # partial results survive an interruption and resume from here
-                    write_json(json_path, {"rows": rows, "summary": summarise(rows), "settings": settings, "partial": True})
+    cases = [(name, mesh, p, d) for name, mesh in loaded for d in defects for p in prompts]
+    todo = [[m for m in methods if (name, p, d, m) not in done] for name, _, p, d in cases]
+    for (name, _, p, d), left in zip(cases, todo):
+        for m in [m for m in methods if m not in left]:
+            print(_row_line(done[(name, p, d, m)]) + "  (kept)", flush=True)
+    new: dict[tuple, dict] = {}
+    run = [i for i, left in enumerate(todo) if left]
+    finished = _finished_cases(run_case, [(*cases[i], todo[i]) for i in run], min(workers, max(len(run), 1)), preset_name, size,
+                               frames, holdout, iterations, progress, options)
+
+    def ordered() -> list[dict]:
+        """Every row known so far (kept or new), in case order."""
+        return [r for name, _, p, d in cases for m in methods
+                for r in [new.get((name, p, d, m)) or done.get((name, p, d, m))] if r is not None]
+
+    for _, case_rows in finished:
+        new.update({_row_key(r): r for r in case_rows})
+        if json_path is not None:  # partial results survive an interruption and resume from here
+            rows = ordered()
+            write_json(json_path, {"rows": rows, "summary": summarise(rows), "settings": settings, "partial": True})
+    rows = ordered()
     result = {"rows": rows, "summary": summarise(rows), "settings": settings}
     if json_path is not None:
         write_json(json_path, result)
@@ -241,16 +314,22 @@ def bench_vcdgs_command(
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     time_budget: float = typer.Option(None, "--time-budget", help="Wall seconds per reconstruction (0 = no cap: every method runs all its steps, so a row depends on the seed only, not on the machine's speed or load; default: the preset's)."),
+    seed: int = typer.Option(None, help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids do not change with it."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
+    workers: int = typer.Option(1, help="Cases run in this many parallel processes (each reconstruction keeps its configured torch threads, so the rows do not change with --workers; its wall seconds do, and under a time budget its step count: add --time-budget 0 for rows that do not depend on the machine's load)."),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     assets = list(asset) if asset else ["turtle", "facecap", "procedural:a cartoon fox with big ears"]
     meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
-    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget)) if v is not None}
+    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget), ("seed", seed))
+               if v is not None}
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
                        iterations=iterations, json_path=json_file,
-                       options=options or None, resume=not fresh)
+                       options=options or None, resume=not fresh, workers=workers)
     print(markdown(result["rows"]))
+    full_vs = full_vs_ablations(result["rows"])
+    if full_vs:
+        print("\n" + full_vs_markdown(full_vs))
     print(json.dumps(result, indent=1))

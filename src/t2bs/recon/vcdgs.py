@@ -1,19 +1,18 @@
 """VCDGS training (paper §3.2): register the static character to a multi-view video grid.
 
 Schedule: (1) fit the static Gaussians' scale/orientation (one per vertex plus one per face,
-texture colours) to renders of the static mesh (gaussians.py); (2) global-only warm-up: only T_global(v, t) is optimised (the paper: "we first
-fit the global transformation"); (3) joint training of T_global, DeformMLP and RefineMLP. Each
-step renders a batch of random (view, time) pairs (a share of them at the canonical view,
-which defines the output) and minimises Huber (+ pyramid) + perceptual (+ silhouette) losses;
-(4) the output: the vertex Gaussians' centres at the canonical view, each frame's non-rigid
-displacement lightly smoothed over the mesh (extract.smooth_displacements, config.output_smoothing).
-Optional: a coarse-to-fine warm-up (config.global_coarse: the loss starts on 2^k-downsampled
-images), a smoothness prior on the shared global motion (config.global_smooth_weight), both off
-by default (no consistent gain in our runs). config.view_residual_static (on by default) keeps
-the view residuals fixed over time: a per-view shape disagreement, as 4D generators make.
-config.time_budget_s caps one reconstruction's wall time (quick: 260 s): the schedule then runs on
-max(step, elapsed-time) progress, so warm-up, joint stage and learning-rate decay all shrink in
-proportion when the steps do not fit (``_Schedule``).
+texture colours) to renders of the static mesh (gaussians.py); (2) global-only warm-up: only
+T_global(v, t) is optimised (the paper: "we first fit the global transformation"); (3) joint
+training of T_global, DeformMLP and RefineMLP. Each step renders a batch of random (view, time)
+pairs (a share of them at the canonical view, which defines the output) and minimises Huber
+(+ pyramid) + perceptual (+ silhouette) losses; (4) the output: the vertex Gaussians' centres at
+the canonical view, each frame's non-rigid displacement lightly smoothed over the mesh
+(extract.smooth_displacements, config.output_smoothing). Frame 0 is anchored to the rest pose.
+config.view_residual_static (on by default) keeps the view residuals fixed over time: a per-view
+shape disagreement, as 4D generators make. config.time_budget_s caps one reconstruction's wall
+time (quick: 260 s; 0 = none): the schedule then runs on max(step, elapsed-time) progress, so
+warm-up, joint stage and learning-rate decay all shrink in proportion when the steps do not fit
+(``_Schedule``).
 
 Regularisers (joint stage; all measured in units of the control-point spacing so the weights
 do not depend on the character's size or on k):
@@ -26,130 +25,14 @@ do not depend on the character's size or on k):
 - refine: RefineMLP offsets stay small, so appearance changes do not replace geometry;
 - local (sparsity): an L1-like penalty on the DeformMLP's shared motion, so that regions the
   images cannot see moving (textureless skin is only observable at silhouettes, and unlit
-  renders carry no shading) follow the global head motion instead of drifting.
+  renders carry no shading) follow the global head motion instead of drifting;
 - track (our addition, recon/tracks.py; track_weight = 0 gives the paper's loss): projected vertex
-  motion from frame 0 matches optical-flow tracks of the vertex's rest pixel (DIS flow, forward-backward
-  checked): tracks from textured pixels from the warm-up on, the others from the joint stage on.
-  The splat loss moves a Gaussian only through the pixels it covers; the tracks give every visible
-  vertex a long-range target. Measured with textured tracks only (clean grids, quick preset, p2p
-  moving / static): mean over turtle + facecap x 4 prompts 0.326 -> 0.275; facecap mouth wide
-  0.53 -> 0.46, smiling 0.26 -> 0.21, turtle blinking 0.29 -> 0.25. Variants, paired runs at 1
-  thread on facecap (mouth wide / smiling): no tracks - / 0.25; tracks on every pixel 0.44 / 0.225,
-  better on mouth wide, but flow on untextured pixels is filled in by its smoothness prior and
-  biases the rigid motion (the synthetic ellipsoid test's roll came out 0.03 instead of 0.1 rad);
-  textured only, min eigenvalue 1e-3 (default) 0.47 / -, 3e-3 0.51 / 0.218; weight 0.2 decaying
-  to 0 over the joint stage 0.46 / 0.24.
-  Untextured tracks in the joint stage only (config.track_flat_weight = 1, the default; the warm-up
-  keeps textured ones, so the rigid fit is not biased): on the turtle's plain green skin the jaw
-  has no texture, and the flow filled in from the lip line and the chin's outline is what opens the
-  mouth. Turtle mouth wide 0.328 -> 0.255 (seen, expression-moving vertices 0.545 -> 0.378; the
-  same tracks in every stage 0.254, at weight 0.3 0.268), facecap mouth wide 0.463 -> 0.440,
-  smiling 0.210 -> 0.214 (single runs, 2 threads, output smoothing on). What is left on the turtle's
-  mouth wide (0.255): the seen expression-moving vertices, 27 % of the moving ones, carry 48 % of the
-  error; the hidden mouth interior (11 %) 30 %, at 0.62 of its static error. Textured tracks there
-  are accurate (98 % of the moving seen vertices tracked, 0.3-0.45 px error, gain 0.96 on the true
-  motion); triangulated across views they reach 0.09-0.12 of static, which the reconstruction
-  with textured tracks only already matched (0.086-0.096). Untextured skin is the gap. With the
-  flat tracks, local_weight 0.005 gave 0.261 (without them, 0 gave 0.313 and rigidity 0.05 0.325,
-  from 0.328).
-Control points bind over the welded mesh (control_points.py: copies of a vertex split at a UV seam
-are one surface point). Before, a textured glTF's UV islands bound as separate parts (the turtle:
-126 face-connected pieces, 3 after welding), free to tear apart where the images do not hold them.
-Measured (benchmarks/vcdgs.py, quick preset, single runs): clean grids, turtle 0.242 / 0.255 /
-0.201 / 0.240 -> 0.234 / 0.248 / 0.198 / 0.230 (blinking / mouth wide / smiling / tongue), facecap
-within 0.003 of before, mean 0.257 -> 0.253; paper-like defects, full mean p2p moving .00670 -> .00664.
-Face Gaussians sit on at most config.max_face_gaussians triangles (quick: 10k, the largest; paper: all).
-A step's cost follows the Gaussian count, and a dense mesh at 128 px has most triangles under a pixel,
-covered by their corners' vertex Gaussians. On the 23.5k-vertex demo fox (47k triangles, 70.5k -> 33.5k
-Gaussians; benchmarks/vcdgs.py, mild defects, 260 s budget) mouth wide p2p moving went .01290 / .01298 ->
-.00736 / .00731 (seeds 0 / 1; static .02341), smiling .00236 / .00226 -> .00257 / .00253 (static .01388); a 5k cap gave
-.01007 / .00233: below ~10k the coverage loss outweighs the extra steps. Turtle and facecap keep all.
-Frame 0 is anchored to the rest pose (config.anchor_first_frame). The per-view rest-pose
-residual correction (debias_static) exists but is off by default: it left ghost edges at moving
-silhouettes and did not help in our runs.
+  motion from frame 0 matches optical-flow tracks of the vertex's rest pixel: textured pixels from
+  the warm-up on, the others from the joint stage on. The splat loss moves a Gaussian only through
+  the pixels it covers; the tracks give every visible vertex a long-range target.
 
-What limits accuracy (measured on clean facecap / turtle mouth-wide grids, quick preset): most
-moving vertices of a mouth prompt are out of sight at rest: the mouth interior, the teeth, the back
-of the head. (The shares quoted before this note's revision, 94 % of moving pairs hidden from the
-canonical view, came from a depth test at 128 px, which marks most truly visible vertices hidden;
-recon/tracks.rest_visibility now tests at 1024 px: 43 % of facecap's vertices are seen by some
-training view.) On facecap mouth wide (ratio 0.463 with tracks): vertices seen at rest by some
-training view are 42 % of the moving ones and reach 0.24; the hidden ones carry 80 % of the error.
-Split by mesh part: facecap's teeth (twelve separate 34-49-vertex parts, none seen at rest) carry
-~55 % of the error at a ratio of 0.97-1.09, i.e. they follow the head and not the jaw; the face part
-21 % (ratio 0.32). Nothing ties a hidden part to the jaw: the lower teeth's best-matching seen
-vertices (by true trajectory) are the chin's, 0.05-0.08 diag away, while the nearest seen ones sit
-at mouth height (0.03-0.04 diag) and mix both jaws: moving each hidden part rigidly with its
-20-100 nearest seen vertices gives those parts 0.69 even from the *true* motion of the seen
-vertices (0.72 from the reconstruction; overall 0.463 -> 0.454).
-An earlier oracle (each control point gets the rigid motion that best fits the true motion of the
-seen vertices bound to it) gave 0.35 at k = 400, 0.21 at 800 and 0.13 at 1200, but it gave control
-points with no seen vertex their true motion, so it is not a bound on what images can recover:
-k = 800 with tracks trained to 0.486 (k = 400: 0.463, paired). Dropping the local prior on control
-points whose cell is hidden at rest (so that they follow their neighbours through rigidity) gave
-0.482. At k = 400 the teeth own no control point: they blend the face's and those of a hidden
-166-vertex part behind them, whose 23 control points have rigidity neighbours only on that part
-(ranked by the same part-aware distance as the binding), an island no image term reaches at rest.
-Replacing half of those neighbours with the nearest control points on seen parts gave 0.448
-(single run, at the time budget): a step, within what one run varies, and not the default.
-A per-Gaussian translation MLP(x, t) added after LBS (width 64, 2 layers, L2 weight 0.1 in spacing
-units; frame 0 anchored), to free what the control points tie down, made facecap worse: clean mouth
-wide .01150 -> .01162, clean tongue .00795 -> .00828, paper-defect tongue .00892 -> .0094 (where
-no_lbs gets .00849): the gap to no_lbs is not a lack of per-vertex freedom. Not kept. Nor is it the
-priors no_lbs lacks or has in another form (same case, full): rigidity 0.05 .00881, 0 .00870 (default
-0.2: .00892); local 0.005 .0091, 0 .00922 (default 0.02).
-Seen and never-seen vertices (the benchmark's p2p_seen: moving vertices that some training view
-sees, depth-tested at 1024 px, in some true frame). On facecap 36-44 % of the static error of the
-mouth prompts sits on vertices no training view ever sees (back teeth, the mouth's floor), yet
-those are not what keeps the clean cases over 0.25: seen vertices reach 0.447 (mouth wide) and
-0.342 (tongue), never-seen ones 0.429 / 0.361. The seen misses are the lower front teeth, seen
-only while the mouth is open (ten 34-49-vertex parts, 3-4 % of the error each, at 0.89-0.99 of
-their static error), and the 166-vertex part behind them (0.999); the face part is at 0.232 with
-19 % of the error. At 128 px a tooth spans ~2 px and the upper teeth, which stay, cover the pixels
-where the lower ones sat, so the image loss has little to pull them with. Giving every part of
->= 20 vertices its own control point (19 more, so a tooth moves rigidly with its own point)
-made it worse: mouth wide p2p moving .01150 -> .01181, p2p_seen .01322 -> .01433. Not kept.
-Under the time budget no_lbs (slower per step) runs out of time before its 800 steps, so its
-result moves with the machine's load: facecap tongue, paper defects, seed 0 gave .00849 (an
-earlier commit), .00876 and .00985 (commit 043bbbf, two runs the same day); full finishes its steps
-(.00892 / .00893). In the first of those two runs no_lbs's lead was on never-seen vertices only
-(seen: full .00975, no_lbs .00996; never seen: .00806 vs .00750).
-With every method on its 800 steps (benchmark --time-budget 0), facecap, paper defects: full ahead in
-3 of 4 (blinking .00282 / .00303, mouth wide .01274 / .01296, tongue .00893 / .00940; smiling .00491 /
-.00431), mean .00735 vs .00742; on p2p_seen in 4 of 4, mean .00831 vs .00893.
-Nor does a plainer extrapolation help: replacing the displacement of the vertices that no training
-view sees in the reconstructed frames by a Gaussian-kernel average of the seen vertices' (16-128
-neighbours, sigma 0.02-0.08) gave facecap tongue (paper) .00903-.00931 (from .00893), NC .0095-.0128
-(from .0062).
-Picking each hidden part's rigid motion after training, among the per-frame rigid fits of k-means
-clusters (k = 3) of its 150 nearest seen vertices' reconstructed trajectories or its own, by the L1
-difference of mesh renders to the canonical video: 0.463 -> 0.435 (about 20 s on the 2-core machine).
-Over the 8 clean cases only facecap's mouth prompts change (tongue 0.350 -> 0.328; the turtle's 40
-hidden parts, 160 vertices, and the blink / smile cases are unchanged), mean 0.275 -> 0.269: not the
-default. 19 of facecap's 31 hidden parts (the back teeth, both sides) change no pixel of the
-canonical view or of the views at +-43 deg in any frame, whatever motion they get: no image places
-them, and the ones that are seen pick candidates at 0.25-0.74 of their static error.
-Before the track term (and with the 128 px visibility split): facecap's lower teeth (separate
-34-49-vertex parts) do not follow the jaw at all
-(their error equals static), and the global stage absorbs part of the jaw opening as head pitch,
-which the local prior only partly undoes on weakly textured skin. Doubling the steps (1600) moved
-the ratio 0.535 -> 0.512 on facecap and not at all on the turtle; skinning small or hidden parts to
-the surrounding surface (teeth to lips) did not help either (the lips' control points mix the
-upper and lower jaw), nor did weaker or stronger local / rigidity priors beyond noise.
-Splitting the error into head motion and expression (the animator's GT separates them; a
-Procrustes fit on the vertices no morph touches gives the true head pose) shows where it is:
-the head motion is recovered to 0.13-0.29 of its static error, the expression only partly. The
-least-squares gain of the recovered expression displacement on the true one is ~0.24 for facecap
-mouth-wide (0.27 on vertices visible from the canonical view) and ~0 for the turtle's blink.
-The turtle's eyelids slide down *over* the eyeball (60 % of their vertices are hidden in every
-view at rest); the likely cause is that a lid must pass in front of the eyeball's splats and the
-depth sort order carries no gradient, so nothing pulls it forward. The blink ratio (0.29) comes
-from the head motion alone. On facecap the chin drops but the lips stay
-together (the lower face stretches). More control points do not help (facecap mouth-wide 0.59
-at k = 1000, 0.66 at k = 2000: finer control points no longer carry the jaw's motion from the
-visible chin to the hidden mouth parts; on the turtle's blink k = 2000 gave 0.25 against 0.29, all
-of it in the head motion, the lids still open); rigidity 0.05, local 0.005, a 50-step warm-up and
-lr_deform 5e-3 all gave 0.51-0.52 (baseline 0.535, single runs, 1 thread).
+Why each default is what it is, the measurements behind it, what limits accuracy on hidden mouth
+parts, and what was tried and not kept: docs/VCDGS_NOTES.md.
 
 Resume: a checkpoint (model + optimiser + step + RNG) is written every ``checkpoint_every``
 steps next to the outputs, tagged with the job key; a re-run with the same key continues
