@@ -198,7 +198,7 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     from t2bs.eval import bench_vcdgs
 
     seen = []
-    monkeypatch.setattr(bench_vcdgs, "run_bench", lambda *a, options=None, **kw: seen.append(options) or {"rows": []})
+    monkeypatch.setattr(bench_vcdgs, "run_bench", lambda *a, options=None, **kw: seen.append(options) or {"rows": [], "summary": summarise([])})
     app = typer.Typer()
     app.command()(bench_vcdgs.bench_vcdgs_command)
     assert CliRunner().invoke(app, ["--asset", "facecap", "--time-budget", "0"]).exit_code == 0

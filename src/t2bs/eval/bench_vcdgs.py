@@ -150,7 +150,7 @@ def summarise(rows: list[dict]) -> dict:
     """Mean per (defects, method), the full/static p2p_moving (and p2p_seen) ratio per case, and full against each
     ablation over the cases both ran (``full_vs``). A mean of p2p_seen is given only when every row it averages has
     the column."""
-    out: dict = {"mean": {}, "ratio_full_over_static": {}, "full_vs": {}}
+    out: dict = {"mean": {}, "ratio_full_over_static": {}}
     for d in sorted({r["defects"] for r in rows}):
         for m in [m for m in ALL_METHODS if any(r["method"] == m for r in rows)]:
             sel = [r for r in rows if r["defects"] == d and r["method"] == m]
@@ -241,21 +241,21 @@ def previous_rows(json_path: Path | None, settings: dict) -> dict[tuple, dict]:
 
 
 def _finished_cases(fn, cases: list[tuple], workers: int, *args):
-    """Run ``fn(*case, *args)`` (``run_case``) for every case; yield (case index, rows) as each finishes. With workers > 1
+    """Run ``fn(*case, *args)`` (``run_case``) for every case; yield each case's rows as it finishes. With workers > 1
     the cases run in that many spawned processes (spawned, not forked: a forked child inherits torch's thread pool
     and the parent's EGL context). Each reconstruction keeps its configured thread count, so its numbers do not
     depend on ``workers``; its wall seconds and, under a time budget, its step count do."""
     if workers <= 1:
-        for i, case in enumerate(cases):
-            yield i, fn(*case, *args)
+        for case in cases:
+            yield fn(*case, *args)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {pool.submit(fn, *case, *args): i for i, case in enumerate(cases)}
+        futures = [pool.submit(fn, *case, *args) for case in cases]
         for fut in as_completed(futures):
-            yield futures[fut], fut.result()
+            yield fut.result()
 
 
 def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods: list[str], preset_name: str = "quick",
@@ -291,7 +291,7 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
         return [r for name, _, p, d in cases for m in methods
                 for r in [new.get((name, p, d, m)) or done.get((name, p, d, m))] if r is not None]
 
-    for _, case_rows in finished:
+    for case_rows in finished:
         new.update({_row_key(r): r for r in case_rows})
         if json_path is not None:  # partial results survive an interruption and resume from here
             rows = ordered()
@@ -329,7 +329,6 @@ def bench_vcdgs_command(
                        iterations=iterations, json_path=json_file,
                        options=options or None, resume=not fresh, workers=workers)
     print(markdown(result["rows"]))
-    full_vs = full_vs_ablations(result["rows"])
-    if full_vs:
-        print("\n" + full_vs_markdown(full_vs))
+    if result["summary"]["full_vs"]:
+        print("\n" + full_vs_markdown(result["summary"]["full_vs"]))
     print(json.dumps(result, indent=1))
