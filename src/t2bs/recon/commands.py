@@ -47,6 +47,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "control_points": cfg.num_control_points, "resolution": cfg.resolution,
          "face_gaussians": 0 if result.model.faces is None else int(result.model.faces.shape[0]),  # after max_face_gaussians
          "track_weight": cfg.track_weight,  # 0 = the paper's loss alone
+         "track_chain": cfg.track_chain,  # tracks chained frame to frame where the direct flow fails
          # share of (view, frame, vertex) entries with a valid optical-flow track
          "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),
          "first_train_loss": result.history.get("first_image_loss"), "final_train_loss": result.history.get("final_image_loss"),

@@ -79,6 +79,11 @@ class VCDGSConfig:
     track_flat_weight: float = 1.0  # weight of tracks starting on untextured pixels, in the joint stage only (the warm-up
     #   uses textured ones alone): flow there is filled in from edges and silhouettes, which follows a dropping jaw
     #   but under-estimates a rigid turn of a plain surface. 0 = textured tracks only (the previous default)
+    track_chain: bool = True  # tracks also chained frame to frame, used where the direct frame 0 -> t flow fails, or
+    #   disagrees and ends on a pixel less like the rest pixel (tracks.py): a wide-open jaw's lower lip moves ~10 px at
+    #   128 px, beyond the direct flow on plain skin. Facecap clean mouth wide: the lower lip's recovered motion 0.43 ->
+    #   0.75 (least-squares gain), ratio to static 0.440 -> 0.427. False = direct only
+    track_agree: float = 0.012  # the direct track is kept where it is within this of the chained one, same unit (1.5 px)
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
     perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"

@@ -27,8 +27,9 @@ do not depend on the character's size or on k):
   images cannot see moving (textureless skin is only observable at silhouettes, and unlit
   renders carry no shading) follow the global head motion instead of drifting;
 - track (our addition, recon/tracks.py; track_weight = 0 gives the paper's loss): projected vertex
-  motion from frame 0 matches optical-flow tracks of the vertex's rest pixel: textured pixels from
-  the warm-up on, the others from the joint stage on. The splat loss moves a Gaussian only through
+  motion from frame 0 matches optical-flow tracks of the vertex's rest pixel (flow from frame 0, or
+  chained frame to frame where that fails on large motion): textured pixels from the warm-up on,
+  the others from the joint stage on. The splat loss moves a Gaussian only through
   the pixels it covers; the tracks give every visible vertex a long-range target.
 
 Why each default is what it is, the measurements behind it, what limits accuracy on hidden mouth
@@ -502,7 +503,8 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
         side = max(data.size)
         views = data.train_views if cfg.track_views == "all" else [data.canonical_view]
         data.tracks = compute_tracks(mesh, data.images, data.cameras, views, cfg.track_fb * side, cfg.track_blur * side,
-                                     progress, min_texture=cfg.track_min_texture)
+                                     progress, min_texture=cfg.track_min_texture, chain=cfg.track_chain,
+                                     agree_px=cfg.track_agree * side)
     model, _ = build_model(mesh, data, cfg, static_targets, progress)
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
     deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
