@@ -166,7 +166,8 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
             d, ok = round_trip(dis, grey[0], grey[t], u0)
             ok &= start
             if chain:
-                step, step_ok = round_trip(dis, grey[t - 1], grey[t], u)
+                # At t = 1 the chained step is the direct flow itself (same images, same pixels).
+                step, step_ok = (d, ok) if t == 1 else round_trip(dis, grey[t - 1], grey[t], u)
                 alive &= step_ok
                 u = u + step
                 box = _box3(grey[t])
