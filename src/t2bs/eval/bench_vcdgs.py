@@ -315,6 +315,7 @@ def bench_vcdgs_command(
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     time_budget: float = typer.Option(None, "--time-budget", help="Wall seconds per reconstruction (0 = no cap: every method runs all its steps, so a row depends on the seed only, not on the machine's speed or load; default: the preset's)."),
     seed: int = typer.Option(None, help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids do not change with it."),
+    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="Hidden parts' motion picked by render (default: the preset's, off)."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
     workers: int = typer.Option(1, help="Cases run in this many parallel processes (each reconstruction keeps its configured torch threads, so the rows do not change with --workers; its wall seconds do, and under a time budget its step count: add --time-budget 0 for rows that do not depend on the machine's load)."),
@@ -322,8 +323,8 @@ def bench_vcdgs_command(
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     assets = list(asset) if asset else ["turtle", "facecap", "procedural:a cartoon fox with big ears"]
     meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
-    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget), ("seed", seed))
-               if v is not None}
+    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget), ("seed", seed),
+                                 ("hidden_pick", hidden_pick)) if v is not None}
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
                        iterations=iterations, json_path=json_file,

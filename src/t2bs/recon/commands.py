@@ -48,6 +48,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "face_gaussians": 0 if result.model.faces is None else int(result.model.faces.shape[0]),  # after max_face_gaussians
          "track_weight": cfg.track_weight,  # 0 = the paper's loss alone
          "track_chain": cfg.track_chain,  # tracks chained frame to frame where the direct flow fails
+         "hidden_pick": result.hidden_pick,  # hidden parts' motion picked by render (HiddenPick.summary(); None: off)
          # share of (view, frame, vertex) entries with a valid optical-flow track
          "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),
          "first_train_loss": result.history.get("first_image_loss"), "final_train_loss": result.history.get("final_image_loss"),
@@ -115,6 +116,7 @@ def reconstruct_command(
     control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     face_gaussians: int = typer.Option(-1, help="Face Gaussians on at most this many of the largest triangles (0 = every triangle; -1 = the preset's: quick 10000, paper all)."),
+    hidden_pick: bool = typer.Option(False, "--hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render (recon/hidden_parts.py; helps wide-open mouths, noise elsewhere)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
@@ -126,7 +128,7 @@ def reconstruct_command(
     project = Project(project_dir)
     if not project.mesh_path.exists():
         raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
-    overrides: dict = {"method": method, "device": device, "seed": seed}
+    overrides: dict = {"method": method, "device": device, "seed": seed, "hidden_pick": hidden_pick}
     if iterations:
         overrides["iterations"] = iterations
         overrides["global_iters"] = min(PRESETS[preset_name].global_iters if preset_name in PRESETS else 0, iterations // 5)

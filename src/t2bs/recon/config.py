@@ -102,6 +102,15 @@ class VCDGSConfig:
     refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
     output_smoothing: int = 4  # Laplacian smoothing steps on each output frame's non-rigid displacement (extract.
     #   smooth_displacements): removes per-vertex fitting noise that tilts normals; 0 = the raw Gaussian centres
+    hidden_pick: bool = False  # parts no training view sees at rest (teeth, mouth bag) may take the rigid motion of a
+    #   cluster of seen vertices, picked by mesh renders against the training images (recon/hidden_parts.py). Opt-in:
+    #   it helps where a mouth opens wide and is noise elsewhere (clean facecap mouth wide, ratio to static 0.427 ->
+    #   0.372, +30 s; paper-like defects: full mouth wide .01241 -> .01256, tongue .00882 -> .00938, and of the 20
+    #   facecap runs over all methods 5 better by 4-14 %, 15 the same or up to 7 % worse; docs/VCDGS_NOTES.md).
+    #   Runs after training, outside time_budget_s
+    hidden_pick_clusters: int = 8  # k-means clusters of the seen vertices' trajectories: the candidate motions
+    hidden_pick_views: int = 5  # training views the renders are compared at (the canonical one and up to 4 around it)
+    hidden_pick_min_vertices: int = 20  # smaller hidden parts keep their own motion
     # --- ablations ---
     method: str = "full"  # full | no_view | no_refine | no_lbs | no_global
     # --- misc ---
@@ -128,6 +137,8 @@ class VCDGSConfig:
             raise UserError(f"max_face_gaussians must be >= 0 (0 = every triangle), got {self.max_face_gaussians}")
         if self.iterations < 1 or self.global_iters < 0 or self.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
+        if self.hidden_pick_clusters < 1 or self.hidden_pick_views < 1:
+            raise UserError("hidden_pick_clusters and hidden_pick_views must be >= 1")
         return self
 
     def to_dict(self) -> dict:

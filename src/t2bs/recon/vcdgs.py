@@ -104,6 +104,7 @@ class ReconResult:
     history: dict = field(default_factory=dict)  # losses over training
     seconds: float = 0.0  # wall time of the reconstruction
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
+    hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_pick ran
 
 
 def resize_stack(x: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
@@ -510,6 +511,23 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
     deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output_smoothing)
-    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"))
+    pick = None
+    if cfg.hidden_pick:
+        verts, pick = _pick_hidden(mesh, verts, data, cfg)
+    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"), pick)
+
+
+def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfig) -> tuple[np.ndarray, dict]:
+    """config.hidden_pick: the hidden parts' motion picked by render (recon/hidden_parts.py)."""
+    from t2bs.recon.hidden_parts import compare_views, pick_hidden_motions
+    from t2bs.recon.tracks import rest_visibility
+
+    seen = rest_visibility(mesh, data.cameras, data.train_views).any(0)
+    views = compare_views(data.cameras, data.canonical_view, data.train_views, cfg.hidden_pick_views)
+    frames = list(range(1, data.frames, 2))  # every other frame after the rest pose
+    verts, report = pick_hidden_motions(mesh, verts, seen, data.images.cpu().numpy(), data.cameras, views, frames,
+                                        data.shading, cfg.hidden_pick_clusters, cfg.hidden_pick_min_vertices,
+                                        seed=cfg.seed)
+    return verts, report.summary()
 
 
