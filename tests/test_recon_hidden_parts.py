@@ -67,6 +67,9 @@ def test_cluster_motions_recover_each_plate():
     assert np.allclose(rots, np.eye(3), atol=1e-6)
     drops = sorted(-trans[:, -1, 1])
     assert np.allclose(drops, [0.0, DROP], atol=1e-6) and np.allclose(trans[:, :, [0, 2]], 0.0, atol=1e-6)
+    # Clusters under min_size are dropped; with none left there is no candidate (the parts keep their motion).
+    rots, trans = cluster_motions(mesh.vertices, true, seen, clusters=2, min_size=100)
+    assert rots.shape == (0, FRAMES, 3, 3) and trans.shape == (0, FRAMES, 3)
 
 
 def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):

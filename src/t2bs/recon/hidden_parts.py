@@ -75,9 +75,10 @@ def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, cl
     import torch
     from scipy.cluster.vq import kmeans2
 
+    none = np.zeros((0, len(vertices), 3, 3)), np.zeros((0, len(vertices), 3))
     idx = np.flatnonzero(seen)
     if len(idx) < max(min_size, clusters):
-        return np.zeros((0, len(vertices), 3, 3)), np.zeros((0, len(vertices), 3))
+        return none
     disp = (vertices[:, idx] - rest[idx][None]).transpose(1, 0, 2).reshape(len(idx), -1)
     feat = np.concatenate([disp / max(disp.std(), 1e-12), 0.5 * rest[idx] / max(rest[idx].std(), 1e-12)], 1)
     _, label = kmeans2(feat.astype(np.float64), clusters, minit="++", seed=seed)
@@ -90,7 +91,7 @@ def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, cl
         r, t = roma.rigid_points_registration(x, torch.as_tensor(vertices[:, members], dtype=torch.float64))
         rots.append(r.numpy())
         trans.append(t.numpy())
-    return np.stack(rots), np.stack(trans)
+    return (np.stack(rots), np.stack(trans)) if rots else none
 
 
 def apply_motion(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray) -> np.ndarray:
