@@ -44,6 +44,13 @@ def scene():
     return mesh, true, recon, idx
 
 
+def scene_images(renderer) -> tuple[list, np.ndarray]:
+    """5 cameras over +-30 deg at 64 px and the true frames seen by each: (cameras, images [V, T, H, W, 3])."""
+    mesh, true, _, _ = scene()
+    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
+    return cameras, np.stack([[renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+
+
 def test_components_and_hidden_parts():
     mesh, _, _, idx = scene()
     label = mesh_components(mesh)
@@ -74,8 +81,7 @@ def test_cluster_motions_recover_each_plate():
 
 def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
     mesh, true, recon, idx = scene()
-    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
-    images = np.stack([[mesh_renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+    cameras, images = scene_images(mesh_renderer)
     seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
     assert seen[idx["head"]].all() and not seen[idx["red"]].any() and not seen[idx["green"]].any()
     views = compare_views(cameras, 2, list(range(5)), count=3, min_separation_deg=10.0)
@@ -102,8 +108,7 @@ def test_reconstruction_picks_on_its_training_views(mesh_renderer):
     from t2bs.recon.vcdgs import TrainData, _pick_hidden
 
     mesh, true, recon, idx = scene()
-    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
-    images = np.stack([[mesh_renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+    cameras, images = scene_images(mesh_renderer)
     data = TrainData(torch.as_tensor(images, dtype=torch.float32), None, cameras, 2, [0, 1, 2, 3], shading="unlit")
     out, summary = _pick_hidden(mesh, recon, data, preset("quick", hidden_pick=True, hidden_pick_clusters=2,
                                                            hidden_pick_min_vertices=4))

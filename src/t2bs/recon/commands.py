@@ -116,7 +116,7 @@ def reconstruct_command(
     control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     face_gaussians: int = typer.Option(-1, help="Face Gaussians on at most this many of the largest triangles (0 = every triangle; -1 = the preset's: quick 10000, paper all)."),
-    hidden_pick: bool = typer.Option(False, "--hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render (recon/hidden_parts.py; helps wide-open mouths, noise elsewhere)."),
+    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render (recon/hidden_parts.py; helps wide-open mouths, noise elsewhere; default: the preset's, off)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
@@ -128,7 +128,7 @@ def reconstruct_command(
     project = Project(project_dir)
     if not project.mesh_path.exists():
         raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
-    overrides: dict = {"method": method, "device": device, "seed": seed, "hidden_pick": hidden_pick}
+    overrides: dict = {"method": method, "device": device, "seed": seed}
     if iterations:
         overrides["iterations"] = iterations
         overrides["global_iters"] = min(PRESETS[preset_name].global_iters if preset_name in PRESETS else 0, iterations // 5)
@@ -138,6 +138,8 @@ def reconstruct_command(
         overrides["lpips_weights"] = lpips_weights
     if track_weight is not None:
         overrides["track_weight"] = track_weight
+    if hidden_pick is not None:
+        overrides["hidden_pick"] = hidden_pick
     if face_gaussians >= 0:
         overrides["max_face_gaussians"] = face_gaussians
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them

@@ -146,19 +146,18 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
         base = losses(out)
         report.loss_before = float(base.mean())
         for ix in report.parts:
-            pick, pick_losses, changed = -1, base, False
+            pick, pick_losses, pick_motion, changed = -1, base, out[:, ix], False
             for c in range(len(rots)):
                 trial = out.copy()
-                trial[:, ix] = apply_motion(rots[c], trans[c], mesh.vertices[ix])
+                trial[:, ix] = motion = apply_motion(rots[c], trans[c], mesh.vertices[ix])
                 trial_losses = losses(trial)
                 changed = changed or bool(np.any(trial_losses != base))
                 if trial_losses.mean() < pick_losses.mean():
-                    pick, pick_losses = c, trial_losses
+                    pick, pick_losses, pick_motion = c, trial_losses, motion
             report.observable.append(changed)
             report.picks.append(pick)
-            if pick >= 0:
-                out[:, ix] = apply_motion(rots[pick], trans[pick], mesh.vertices[ix])
-                base = pick_losses
+            out[:, ix] = pick_motion
+            base = pick_losses
         report.loss_after = float(base.mean())
     finally:
         if own:
