@@ -48,6 +48,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "face_gaussians": 0 if result.model.faces is None else int(result.model.faces.shape[0]),  # after max_face_gaussians
          "track_weight": cfg.track_weight,  # 0 = the paper's loss alone
          "track_chain": cfg.track_chain,  # tracks chained frame to frame where the direct flow fails
+         "track_flow_size": cfg.track_flow_size,  # px the flow ran at (upsampled from the training images)
          "hidden_pick": result.hidden_pick,  # hidden parts' motion picked by render (HiddenPick.summary(); None: off)
          # share of (view, frame, vertex) entries with a valid optical-flow track
          "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),

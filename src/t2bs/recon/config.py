@@ -84,6 +84,10 @@ class VCDGSConfig:
     #   128 px, beyond the direct flow on plain skin. Facecap clean mouth wide: the lower lip's recovered motion 0.43 ->
     #   0.75 (least-squares gain), ratio to static 0.440 -> 0.427. False = direct only
     track_agree: float = 0.012  # the direct track is kept where it is within this of the chained one, same unit (1.5 px)
+    track_flow_size: int = 256  # px: the flow runs on the training images upsampled (bicubic) to at least this longer
+    #   side (0 = at the training resolution; the paper preset's 512 px is not upsampled). DIS matches 8 px patches,
+    #   wider than a lip at 128 px, so the lower lip's patch also holds the still upper lip. Facecap clean mouth wide,
+    #   tracks of true motion >= 6 px over the training views: gain 0.76 -> 0.90, error 2.41 -> 1.85 px; see the notes
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
     perceptual_weight: float = 0.2  # weight of LPIPS (weights present) or D-SSIM (otherwise)
     perceptual: str = "auto"  # "auto" (LPIPS if weights are configured, else D-SSIM), "lpips", "dssim", "none"

@@ -125,12 +125,16 @@ def texture_strength(grey: np.ndarray) -> np.ndarray:
 
 def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], views: list[int], fb_px: float = 1.0,
                    blur_px: float = 0.7, progress: bool = False, min_texture: float = 0.0,
-                   workers: int = 0, chain: bool = True, agree_px: float = 1.5) -> VertexTracks:
+                   workers: int = 0, chain: bool = True, agree_px: float = 1.5, flow_size: int = 0) -> VertexTracks:
     """Tracks of every vertex in ``views`` of ``images`` [V, T, H, W, 3] float 0..1 (rest pose at
     t = 0), seen by ``cameras`` [V] at the images' resolution. Views not listed get weight 0.
     ``min_texture``: ``textured`` marks the tracks starting where ``texture_strength`` of the rest
     image reaches it (the others start on flat skin or straight edges; track_loss weighs them).
     ``chain``: combine direct and frame-to-frame (chained) flow (module docstring); False = direct only.
+    ``flow_size``: the flow runs on the images upsampled (bicubic) so that their longer side is at least
+    this many px (0 = as given); ``fb_px``, ``blur_px``, ``agree_px`` and the returned displacements
+    stay in the given images' pixels. Why: DIS matches 8 px patches, wider than a lip at 128 px, so a
+    patch on the lower lip also holds the still upper lip and the flow under-estimates a dropping jaw.
     ``workers``: views computed at once in threads (OpenCV's flow releases the GIL; each view has
     its own flow engine, so the result does not depend on it); 0 = torch's thread count."""
     from concurrent.futures import ThreadPoolExecutor
@@ -140,6 +144,8 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
 
     cv2.setNumThreads(1)  # parallel over views instead: one flow per thread, none fighting torch's
     nv, nt, h, w = images.shape[:4]
+    scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
+    size = (round(w * scale), round(h * scale))
     n = mesh.num_vertices
     disp = np.zeros((nv, nt, n, 2), np.float32)
     weights = np.zeros((nv, nt, n), np.float32)
@@ -151,12 +157,16 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
         """Flow a -> b sampled at ``uv`` [N, 2], and whether the b -> a flow brings it back within fb_px."""
         d = _sample(dis.calc(a, b, None), uv)
         back = _sample(dis.calc(b, a, None), uv + d)
-        return d, np.linalg.norm(d + back, axis=-1) < fb_px
+        return d, np.linalg.norm(d + back, axis=-1) < fb_px * scale
 
     def view_tracks(v: int) -> None:
         dis = _flow_engine()
-        u0 = cameras[v].project(verts)[0].astype(np.float32)  # [N, 2]
-        grey = [_grey(f, blur_px) for f in images[v].numpy()]
+        cam = cameras[v].resized(*size) if scale > 1.0 else cameras[v]
+        u0 = cam.project(verts)[0].astype(np.float32)  # [N, 2], in the flow's pixels
+        frames = images[v].numpy()
+        if scale > 1.0:
+            frames = [cv2.resize(f, size, interpolation=cv2.INTER_CUBIC) for f in frames]
+        grey = [_grey(f, blur_px * scale) for f in frames]
         textured[v] = _sample(texture_strength(grey[0])[..., None], u0)[:, 0] >= min_texture
         start = visible[v]
         weights[v, 0] = start
@@ -173,10 +183,10 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
                 box = _box3(grey[t])
                 closer = (np.abs(_sample(box, u0 + d)[:, 0] - rest_grey)
                           <= np.abs(_sample(box, u)[:, 0] - rest_grey))
-                direct = ok & (~alive | (np.linalg.norm(d - (u - u0), axis=-1) < agree_px) | closer)
+                direct = ok & (~alive | (np.linalg.norm(d - (u - u0), axis=-1) < agree_px * scale) | closer)
                 d = np.where(direct[:, None], d, u - u0)
                 ok = direct | alive
-            disp[v, t] = d
+            disp[v, t] = d / scale
             weights[v, t] = ok
 
     with ThreadPoolExecutor(max(1, min(len(views), workers or torch.get_num_threads()))) as pool:

@@ -505,7 +505,7 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
         views = data.train_views if cfg.track_views == "all" else [data.canonical_view]
         data.tracks = compute_tracks(mesh, data.images, data.cameras, views, cfg.track_fb * side, cfg.track_blur * side,
                                      progress, min_texture=cfg.track_min_texture, chain=cfg.track_chain,
-                                     agree_px=cfg.track_agree * side)
+                                     agree_px=cfg.track_agree * side, flow_size=cfg.track_flow_size)
     model, _ = build_model(mesh, data, cfg, static_targets, progress)
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
     deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
