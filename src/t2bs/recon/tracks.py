@@ -23,6 +23,10 @@ lost, agrees within ``agree_px``, or lands on a pixel less like the rest pixel (
 difference, 3x3 box-filtered); else the chained one where it is valid. (Chained wherever the two
 disagree made the turtle's blink 8 % worse: a chained track next to a closing eyelid can slide
 along with the lid; direct wherever valid kept the wrong direct tracks of a few lower-lip vertices.)
+Both flows may run on the images upsampled (``flow_size``; VCDGSConfig.track_flow_size = 256): DIS
+matches 8 px patches, and at 128 px a patch on the lower lip also holds the upper lip, which stays,
+so the flow under-reports a dropping jaw (facecap, true motion >= 6 px: gain 0.76 at 128 px, 0.90
+at 256 px). Thresholds and the returned displacements stay in the given images' pixels.
 A track counts only where the vertex is visible in the rest render of that view (depth test).
 The loss (vcdgs.train) compares the model's projected displacement x(v, t) - x(v, 0) with the
 tracked one, so a per-view shape disagreement at rest (a 4D generator's side view) is not
