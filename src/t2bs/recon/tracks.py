@@ -150,6 +150,8 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
     nv, nt, h, w = images.shape[:4]
     scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
     size = (round(w * scale), round(h * scale))
+    # per axis, as the resized camera scales them: rounding the size can make x and y differ slightly
+    to_given_px = np.array([w / size[0], h / size[1]], np.float32)
     n = mesh.num_vertices
     disp = np.zeros((nv, nt, n, 2), np.float32)
     weights = np.zeros((nv, nt, n), np.float32)
@@ -190,7 +192,7 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
                 direct = ok & (~alive | (np.linalg.norm(d - (u - u0), axis=-1) < agree_px * scale) | closer)
                 d = np.where(direct[:, None], d, u - u0)
                 ok = direct | alive
-            disp[v, t] = d / scale
+            disp[v, t] = d * to_given_px
             weights[v, t] = ok
 
     with ThreadPoolExecutor(max(1, min(len(views), workers or torch.get_num_threads()))) as pool:
