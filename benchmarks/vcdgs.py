@@ -10,14 +10,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-import typer  # noqa: E402
-
-from t2bs.errors import UserError  # noqa: E402
+from t2bs.errors import run_command  # noqa: E402
 from t2bs.eval.bench_vcdgs import bench_vcdgs_command  # noqa: E402
 
 if __name__ == "__main__":
-    try:
-        typer.run(bench_vcdgs_command)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_command(bench_vcdgs_command)

@@ -13,3 +13,16 @@ class MissingCheckpointError(UserError):
 
     def __init__(self, what: str, where: str, how: str):
         super().__init__(f"{what} not found at {where}: {how}")
+
+
+def run_command(fn) -> None:
+    """``typer.run(fn)`` for a standalone script (benchmarks/): a UserError becomes one line and exit code 2."""
+    import sys
+
+    import typer
+
+    try:
+        typer.run(fn)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -117,6 +117,14 @@ def compare_views(cameras: list[Camera], canonical: int, candidates: list[int], 
     return chosen
 
 
+def render_losses(renderer, mesh: Mesh, vertices: np.ndarray, images: np.ndarray, cameras: list[Camera],
+                  views: list[int], frames: list[int], shading: str = "lambert") -> np.ndarray:
+    """[len(views) * len(frames)] mean L1 difference between mesh renders of ``vertices`` [T, N, 3] and
+    ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size), view-major."""
+    return np.array([np.abs(renderer.render(mesh, cameras[v], vertices=vertices[t], shading=shading).rgb
+                            - images[v, t]).mean() for v in views for t in frames])
+
+
 def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, images: np.ndarray,
                         cameras: list[Camera], views: list[int], frames: list[int], shading: str = "lambert",
                         clusters: int = 8, min_vertices: int = 20, seed: int = 0,
@@ -139,9 +147,8 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     own = renderer is None
     r = MeshRenderer() if own else renderer
     try:
-        def losses(verts: np.ndarray) -> np.ndarray:  # [len(views) * len(frames)] mean L1 of each image
-            return np.array([np.abs(r.render(mesh, cameras[v], vertices=verts[t], shading=shading).rgb
-                                    - images[v, t]).mean() for v in views for t in frames])
+        def losses(verts: np.ndarray) -> np.ndarray:
+            return render_losses(r, mesh, verts, images, cameras, views, frames, shading)
 
         base = losses(out)
         report.loss_before = float(base.mean())
