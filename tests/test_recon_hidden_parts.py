@@ -115,3 +115,15 @@ def test_reconstruction_picks_on_its_training_views(mesh_renderer):
     assert summary["hidden_parts"] == 2 and summary["moved"] == 1 and summary["views"][0] == 2
     assert 4 not in summary["views"]  # a held-out view is never compared against
     assert np.abs(out[:, idx["red"]] - true[:, idx["red"]]).max() < 1e-5
+
+
+def test_more_sweeps_never_raise_the_loss_and_stop_when_nothing_moves(mesh_renderer):
+    mesh, true, recon, idx = scene()
+    cameras, images = scene_images(mesh_renderer)
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))
+    one, r1 = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    more, r3 = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, sweeps=3)
+    assert r1.sweeps == 1 and r3.sweeps == 2  # the second sweep moves nothing, so the third does not run
+    assert r3.loss_after <= r1.loss_after and r3.picks == r1.picks and np.array_equal(more, one)
+    assert np.abs(more[:, idx["red"]] - true[:, idx["red"]]).max() < 1e-5
