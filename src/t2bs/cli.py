@@ -10,7 +10,7 @@ import sys
 
 import typer
 
-from t2bs.errors import UserError
+from t2bs.errors import exit_on_user_error
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Text or any character mesh -> animatable blendshape rig (T2Bs).")
@@ -60,10 +60,7 @@ bench_app.command("retarget")(_retarget.bench_retarget)
 
 def main() -> None:
     try:
-        app()
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        exit_on_user_error(app)
     except KeyboardInterrupt:
         print("interrupted; finished jobs are kept, re-run to resume", file=sys.stderr)
         sys.exit(130)

@@ -15,14 +15,19 @@ class MissingCheckpointError(UserError):
         super().__init__(f"{what} not found at {where}: {how}")
 
 
-def run_command(fn) -> None:
-    """``typer.run(fn)`` for a standalone script (benchmarks/): a UserError becomes one line and exit code 2."""
+def exit_on_user_error(call) -> None:
+    """Run ``call()``; a UserError (a user mistake, not a bug) becomes one line on stderr and exit code 2."""
     import sys
 
-    import typer
-
     try:
-        typer.run(fn)
+        call()
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+def run_command(fn) -> None:
+    """``typer.run(fn)`` for a standalone script (benchmarks/), with ``exit_on_user_error``."""
+    import typer
+
+    exit_on_user_error(lambda: typer.run(fn))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from t2bs.errors import UserError
+from t2bs.errors import UserError, exit_on_user_error
 
 
 def exposure_warning(host: str) -> str | None:
@@ -68,8 +68,4 @@ def main() -> None:
     """Entry point of `python -m t2bs.viewer` (same as `t2bs view`)."""
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
     app.command()(view_command)
-    try:
-        app()
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    exit_on_user_error(app)
