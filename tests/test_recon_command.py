@@ -11,7 +11,7 @@ from t2bs.errors import UserError
 from t2bs.geometry.io import load_mesh, save_mesh
 from t2bs.project import Project
 from t2bs.recon.commands import list_videos, reconstruct_video
-from t2bs.recon.config import preset
+from t2bs.recon.config import parse_options, preset
 from t2bs.video.grid import save_grid
 
 from test_recon import sphere_mesh, splat_grid
@@ -49,3 +49,18 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
         list_videos(project, ["nope"])
     with pytest.raises(UserError, match="unknown method"):
         preset("quick", method="bogus")
+
+
+def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
+    over = parse_options(["knn=4", "hidden_pick=on", "track_weight=0", "holdout_views=4,10", "perceptual=dssim"])
+    assert over == {"knn": 4, "hidden_pick": True, "track_weight": 0.0, "holdout_views": (4, 10), "perceptual": "dssim"}
+    assert type(over["track_weight"]) is float and type(over["knn"]) is int
+    cfg = preset("quick", **over)
+    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, True, (4, 10))
+    assert parse_options(["hidden_pick=False"]) == {"hidden_pick": False}
+    for bad, says in ((["knn"], "KEY=VALUE"), (["no_such=1"], "no VCDGS option 'no_such'"),
+                      (["knn=four"], "not a valid int"), (["hidden_pick=maybe"], "not a valid bool")):
+        with pytest.raises(UserError, match=says):
+            parse_options(bad)
+    with pytest.raises(UserError, match="knn"):  # parsed, then rejected by the config's own check
+        preset("quick", **parse_options(["knn=0"]))

@@ -37,6 +37,7 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
+from t2bs.recon.config import parse_options, preset
 
 SHARED_ASSETS = Path(os.environ.get("T2BS_SHARED_ASSETS", "/work/shared/assets"))
 DEFAULT_PROMPTS = ("blinking", "opening the mouth extremely wide", "smiling", "tongue sticking out the mouth")
@@ -82,7 +83,6 @@ def seen_vertices(mesh, frames: np.ndarray, cameras, renderer) -> np.ndarray:
 
 def case_config_overrides(preset_name: str, iterations: int, options: dict | None) -> dict:
     """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
-    from t2bs.recon.config import preset
 
     over = dict(options or {})
     if iterations:
@@ -94,7 +94,6 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
              frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
              options: dict | None = None) -> list[dict]:
     from t2bs.eval.metrics import geometry_metrics, psnr, ssim
-    from t2bs.recon.config import preset
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
@@ -211,7 +210,6 @@ def bench_settings(preset_name: str, size: int, frames: int, holdout: tuple[int,
                    options: dict | None) -> dict:
     """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
     when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
-    from t2bs.recon.config import preset
 
     config = preset(preset_name, **case_config_overrides(preset_name, iterations, options)).to_dict()
     config.pop("method"), config.pop("holdout_views")
@@ -318,6 +316,7 @@ def bench_vcdgs_command(
     hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="Hidden parts' motion picked by render (default: the preset's, off)."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
+    set_options: list[str] = typer.Option(None, "--set", help="Any other VCDGS option as KEY=VALUE (repeat; a field of t2bs.recon.config.VCDGSConfig, e.g. --set knn=4), for every method; recorded in the JSON's settings."),
     workers: int = typer.Option(1, help="Cases run in this many parallel processes (each reconstruction keeps its configured torch threads, so the rows do not change with --workers; its wall seconds do, and under a time budget its step count: add --time-budget 0 for rows that do not depend on the machine's load)."),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
@@ -325,6 +324,9 @@ def bench_vcdgs_command(
     meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
     options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget), ("seed", seed),
                                  ("hidden_pick", hidden_pick)) if v is not None}
+    options.update(parse_options(set_options or []))
+    if {"method", "holdout_views"} & set(options):
+        raise UserError("--set method / holdout_views: the benchmark sets these per row (use --methods)")
     result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
                        [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
                        iterations=iterations, json_path=json_file,

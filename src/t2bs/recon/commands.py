@@ -18,7 +18,7 @@ import typer
 from t2bs.errors import UserError
 from t2bs.distributed import Job, run_jobs
 from t2bs.project import Project, content_key
-from t2bs.recon.config import METHODS, PRESETS, VCDGSConfig, preset
+from t2bs.recon.config import METHODS, PRESETS, VCDGSConfig, parse_options, preset
 
 
 def list_videos(project: Project, videos: list[str] | None) -> list[Path]:
@@ -124,6 +124,7 @@ def reconstruct_command(
     seed: int = typer.Option(0, help="Seed of sampling and initialisation."),
     workers: int = typer.Option(1, help="Videos reconstructed in parallel on this machine (process pool)."),
     ray: str = typer.Option(None, "--ray", help="Run the jobs on Ray: 'auto', 'local' or host:port."),
+    set_options: list[str] = typer.Option(None, "--set", help="Any VCDGS option as KEY=VALUE (repeat; a field of t2bs.recon.config.VCDGSConfig, e.g. --set knn=4); applied after the options above."),
 ) -> None:
     """Recover per-frame meshes from each multi-view grid with VCDGS (resumable)."""
     project = Project(project_dir)
@@ -145,6 +146,7 @@ def reconstruct_command(
         overrides["max_face_gaussians"] = face_gaussians
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
         overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
+    overrides.update(parse_options(set_options or []))
     cfg = preset(preset_name, **overrides)
     grids = list_videos(project, videos)
     t0 = time.time()

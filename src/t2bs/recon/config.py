@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import typing
 from dataclasses import asdict, dataclass, field, replace
 
 from t2bs.errors import UserError
@@ -186,4 +187,38 @@ def preset(name: str, **overrides) -> VCDGSConfig:
     return replace(PRESETS[name], **overrides).validate()
 
 
-__all__ = ["VCDGSConfig", "PRESETS", "METHODS", "preset", "field"]
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _parse_value(name: str, kind, text: str):
+    """``text`` as a value of the field type ``kind`` (int, float, bool, str or tuple[int, ...])."""
+    try:
+        if kind is bool and text.lower() in _TRUE + _FALSE:
+            return text.lower() in _TRUE
+        if kind in (int, float, str):
+            return kind(text)
+        if typing.get_origin(kind) is tuple:
+            return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        pass
+    raise UserError(f"VCDGS option {name}={text!r}: not a valid {getattr(kind, '__name__', str(kind))}")
+
+
+def parse_options(items: typing.Iterable[str]) -> dict:
+    """``["knn=4", "hidden_pick=true", "holdout_views=4,10"]`` -> {field: typed value} overrides of VCDGSConfig
+    (the CLI's ``--set``): any field by name, the value read by its type (bool: true/false, 1/0, yes/no, on/off;
+    tuples: comma-separated). UserError on a malformed item, an unknown field or a value of the wrong type."""
+    kinds = typing.get_type_hints(VCDGSConfig)
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise UserError(f"--set {item!r}: expected KEY=VALUE, e.g. knn=4")
+        if name not in kinds:
+            raise UserError(f"--set {item!r}: no VCDGS option {name!r} (the fields of t2bs.recon.config.VCDGSConfig)")
+        out[name] = _parse_value(name, kinds[name], text.strip())
+    return out
+
+
+__all__ = ["VCDGSConfig", "PRESETS", "METHODS", "preset", "parse_options", "field"]
