@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -64,3 +66,6 @@ def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
             parse_options(bad)
     with pytest.raises(UserError, match="knn"):  # parsed, then rejected by the config's own check
         preset("quick", **parse_options(["knn=0"]))
+    r = subprocess.run([sys.executable, "-m", "t2bs.cli", "reconstruct", "nowhere", "--set", "knn=four"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip() == "error: VCDGS option knn='four': not a valid int", r.stderr

@@ -127,6 +127,7 @@ def reconstruct_command(
     set_options: list[str] = typer.Option(None, "--set", help="Any VCDGS option as KEY=VALUE (repeat; a field of t2bs.recon.config.VCDGSConfig, e.g. --set knn=4); applied after the options above."),
 ) -> None:
     """Recover per-frame meshes from each multi-view grid with VCDGS (resumable)."""
+    extra = parse_options(set_options or [])
     project = Project(project_dir)
     if not project.mesh_path.exists():
         raise UserError(f"{project_dir}: no character/mesh.glb (run `t2bs render MESH -o {project_dir}` first)")
@@ -146,7 +147,7 @@ def reconstruct_command(
         overrides["max_face_gaussians"] = face_gaussians
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
         overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
-    overrides.update(parse_options(set_options or []))
+    overrides.update(extra)
     cfg = preset(preset_name, **overrides)
     grids = list_videos(project, videos)
     t0 = time.time()
