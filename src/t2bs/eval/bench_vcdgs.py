@@ -83,7 +83,6 @@ def seen_vertices(mesh, frames: np.ndarray, cameras, renderer) -> np.ndarray:
 
 def case_config_overrides(preset_name: str, iterations: int, options: dict | None) -> dict:
     """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
-
     over = dict(options or {})
     if iterations:
         over.update(iterations=iterations, global_iters=min(preset(preset_name).global_iters, iterations // 5))
@@ -210,7 +209,6 @@ def bench_settings(preset_name: str, size: int, frames: int, holdout: tuple[int,
                    options: dict | None) -> dict:
     """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
     when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
-
     config = preset(preset_name, **case_config_overrides(preset_name, iterations, options)).to_dict()
     config.pop("method"), config.pop("holdout_views")
     return {"preset": preset_name, "size": size, "frames": frames, "holdout_views": list(holdout),
