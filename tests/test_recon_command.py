@@ -54,12 +54,12 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
 
 
 def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
-    over = parse_options(["knn=4", "hidden_pick=on", "track_weight=0", "holdout_views=4,10", "perceptual=dssim"])
-    assert over == {"knn": 4, "hidden_pick": True, "track_weight": 0.0, "holdout_views": (4, 10), "perceptual": "dssim"}
+    over = parse_options(["knn=4", "hidden_pick=off", "track_weight=0", "holdout_views=4,10", "perceptual=dssim"])
+    assert over == {"knn": 4, "hidden_pick": False, "track_weight": 0.0, "holdout_views": (4, 10), "perceptual": "dssim"}
     assert type(over["track_weight"]) is float and type(over["knn"]) is int
     cfg = preset("quick", **over)
-    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, True, (4, 10))
-    assert parse_options(["hidden_pick=False"]) == {"hidden_pick": False}
+    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, False, (4, 10))  # on by default
+    assert parse_options(["hidden_pick=True"]) == {"hidden_pick": True}
     for bad, says in ((["knn"], "KEY=VALUE"), (["no_such=1"], "no VCDGS option 'no_such'"),
                       (["knn=four"], "not a valid int"), (["hidden_pick=maybe"], "not a valid bool")):
         with pytest.raises(UserError, match=says):

@@ -6,7 +6,8 @@ import numpy as np
 
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh, merge_meshes
-from t2bs.recon.hidden_parts import cluster_motions, compare_views, hidden_parts, mesh_components, pick_hidden_motions
+from t2bs.recon.hidden_parts import (GROUPS, Opening, cluster_motions, compare_views, find_opening, group_parts, hidden_parts,
+                                     mesh_components, pick_hidden_motions)
 from t2bs.recon.tracks import rest_visibility
 
 FRAMES = 5
@@ -79,6 +80,47 @@ def test_cluster_motions_recover_each_plate():
     assert rots.shape == (0, FRAMES, 3, 3) and trans.shape == (0, FRAMES, 3)
 
 
+def test_opening_is_the_slit_between_plates_that_part():
+    mesh, true, _, idx = scene()
+    seen = np.zeros(mesh.num_vertices, bool)
+    seen[idx["head"]] = seen[idx["jaw"]] = True
+    opening = find_opening(mesh.vertices, true, seen)
+    # The pairs across the 0.005 gap: the head plate's bottom row and the jaw plate's top row (6 each).
+    assert opening is not None and opening.frame == FRAMES - 1 and 6 <= opening.pairs <= 16
+    assert np.allclose(opening.normal, [0.0, -1.0, 0.0], atol=1e-6)  # towards where the jaw goes
+    assert abs(opening.point[1] + 0.0025) < 1e-6 and abs(opening.point[2] - 0.1) < 1e-6
+    # Nothing opens: rest pose throughout, or a motion that moves both plates together.
+    assert find_opening(mesh.vertices, np.repeat(mesh.vertices[None], FRAMES, 0), seen) is None
+    assert find_opening(mesh.vertices, mesh.vertices[None] + np.array([[[0.0, -DROP, 0.0]]]), seen) is None
+    assert find_opening(mesh.vertices, true, np.zeros(mesh.num_vertices, bool)) is None
+
+
+def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
+    def slit(x0: float, count: int) -> np.ndarray:  # two rows of points 0.004 apart, one above the other
+        x = x0 + 0.01 * np.arange(count)
+        return np.concatenate([np.stack([x, np.full(count, y), np.zeros(count)], 1) for y in (0.002, -0.002)])
+    mouth, eye = slit(0.0, 12), slit(10.0, 3)
+    rest = np.concatenate([mouth, eye]).astype(np.float32)
+    moved = rest.copy()
+    moved[12:24, 1] -= 0.5  # the mouth's lower row drops
+    moved[24:27, 2] += 0.5  # the eye's front row comes forward (another direction, fewer pairs)
+    opening = find_opening(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
+    assert opening is not None and np.allclose(opening.normal, [0.0, -1.0, 0.0], atol=1e-6)
+    assert 0.0 <= opening.point[0] <= 0.11 and opening.frame == 1 and opening.pairs >= 12
+
+
+def test_parts_group_by_where_they_lie_across_the_opening():
+    opening = Opening(np.zeros(3), np.array([0.0, 1.0, 0.0]), pairs=1, frame=1)
+    y = np.linspace(0.0, 1.0, 11)
+    rest = np.concatenate([np.stack([np.zeros_like(v), v, np.zeros_like(v)], 1)
+                           for v in (0.1 + y, -0.1 - y, 2 * y - 1.0, 1.2 * y - 0.3, 0.2 + y)])
+    parts = [np.arange(11 * k, 11 * k + 11) for k in range(5)]
+    groups = group_parts(rest, parts, opening)
+    # wholly on the normal's side (0 and 4), wholly on the other (1), across evenly (2), across mostly on one side (3)
+    assert groups == [[0, 4], [1], [2], [3]] and len(GROUPS) == 4
+    assert group_parts(rest, parts[:2], opening) == [[0], [1]]  # empty groups are dropped
+
+
 def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
     mesh, true, recon, idx = scene()
     cameras, images = scene_images(mesh_renderer)
@@ -88,7 +130,7 @@ def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
     assert views[0] == 2 and len(views) == 3
     out, report = pick_hidden_motions(mesh, recon, seen, images, cameras, views, list(range(1, FRAMES)),
                                       shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
-    assert [len(p) for p in report.parts] == [16, 16]
+    assert [len(p) for p in report.parts] == [16, 16] and len(report.groups) == 2  # one part on each side
     red = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["red"])][0]
     assert report.observable[red]
     # The red part now stays with the head, as in the images. The green one keeps its (wrong) motion: it
@@ -98,6 +140,33 @@ def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
     assert report.picks[1 - red] == -1 and report.loss_after < report.loss_before
     keep = np.setdiff1d(np.arange(mesh.num_vertices), idx["red"])
     assert np.array_equal(out[:, keep], recon[:, keep])
+
+
+def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_opens(mesh_renderer):
+    mesh, true, recon, idx = scene()
+    cameras, images = scene_images(mesh_renderer)
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    # Two hidden parts on the jaw's side: the red one and a copy of it further back, both wrong in the same way.
+    back = Mesh(mesh.vertices[idx["red"]] - np.array([0.0, 0.0, 0.05], np.float32),
+                mesh.faces[np.isin(mesh.faces, idx["red"]).all(1)] - idx["red"][0],
+                vertex_colors=mesh.vertex_colors[idx["red"]])
+    both = merge_meshes([("scene", mesh), ("back", back)])
+    extra = np.arange(mesh.num_vertices, both.num_vertices)
+    recon2 = np.concatenate([recon, recon[:, idx["red"]] - np.array([0.0, 0.0, 0.05], np.float32)], 1)
+    seen2 = np.concatenate([seen, np.zeros(len(extra), bool)])
+    out, report = pick_hidden_motions(both, recon2, seen2, images, cameras, [2, 1, 3], list(range(1, FRAMES)),
+                                      shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    assert len(report.parts) == 3 and sorted(map(len, report.groups)) == [1, 2]
+    red = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["red"])][0]
+    twin = [i for i, p in enumerate(report.parts) if np.array_equal(p, extra)][0]
+    assert report.picks[red] == report.picks[twin] >= 0
+    assert np.abs(out[:, extra] - (true[:, idx["red"]] - np.array([0.0, 0.0, 0.05]))).max() < 1e-5
+    # A reconstruction where nothing opens: the parts stay out of sight, so nothing is rendered and nothing moves.
+    still = np.repeat(mesh.vertices[None], FRAMES, 0)
+    out, report = pick_hidden_motions(mesh, still, seen, images, cameras, [2], [1], shading="unlit", clusters=2,
+                                      min_vertices=4, renderer=mesh_renderer)
+    assert report.opening is None and report.picks == [-1, -1] and report.groups == [] and report.loss_before == 0.0
+    assert np.array_equal(out, still)
 
 
 def test_reconstruction_picks_on_its_training_views(mesh_renderer):
@@ -122,7 +191,7 @@ def test_more_sweeps_never_raise_the_loss_and_stop_when_nothing_moves(mesh_rende
     cameras, images = scene_images(mesh_renderer)
     seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
     args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))
-    one, r1 = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    one, r1 = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, sweeps=1)
     more, r3 = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, sweeps=3)
     assert r1.sweeps == 1 and r3.sweeps == 2  # the second sweep moves nothing, so the third does not run
     assert r3.loss_after <= r1.loss_after and r3.picks == r1.picks and np.array_equal(more, one)

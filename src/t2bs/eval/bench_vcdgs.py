@@ -15,8 +15,8 @@ views against the true mesh rendered there (same renderer and shading, no defect
 seconds per reconstruction. The "static" row is the neutral mesh for every frame.
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, p2p_all,
-p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds}, ...], "summary": {...}, "settings": {...}}`` (also written to
-``--json``, after every case). The summary holds the mean per (defects, method), the full / static ratio per case,
+p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
+(also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran). The summary holds the mean per (defects, method), the full / static ratio per case,
 and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
 claim as mean p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
 table). Resume: a re-run with the same ``--json`` file and the same settings
@@ -108,6 +108,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
         rows = []
         for method in methods:
             t0 = time.time()
+            pick = None  # hidden_parts.HiddenPick.summary() where config.hidden_pick ran
             if method == "static":
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
@@ -116,14 +117,14 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                         "holdout_views": tuple(holdout)}
                 cfg = preset(preset_name, **over)
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
-                verts, seconds = res.vertices, time.time() - t0
+                verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
             rows.append({"asset": name, "prompt": prompt, "defects": defects, "method": method,
                          "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "p2p_seen": geo["p2p_seen"],
                          "seen_fraction": geo["seen_fraction"], "nc": geo["nc"],
                          "psnr": psnr(imgs, gt_imgs), "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
-                         "seconds": round(seconds, 2)})
+                         "seconds": round(seconds, 2), **({"hidden_pick": pick} if pick else {})})
             print(_row_line(rows[-1]), flush=True)
     return rows
 
@@ -311,7 +312,7 @@ def bench_vcdgs_command(
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     time_budget: float = typer.Option(None, "--time-budget", help="Wall seconds per reconstruction (0 = no cap: every method runs all its steps, so a row depends on the seed only, not on the machine's speed or load; default: the preset's)."),
     seed: int = typer.Option(None, help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids do not change with it."),
-    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="Hidden parts' motion picked by render (default: the preset's, off)."),
+    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="Hidden parts' motion picked by render (recon/hidden_parts.py; default: the preset's, on)."),
     json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
     set_options: list[str] = typer.Option(None, "--set", help="Any other VCDGS option as KEY=VALUE (repeat; a field of t2bs.recon.config.VCDGSConfig, e.g. --set knn=4), for every method; recorded in the JSON's settings."),

@@ -117,7 +117,7 @@ def reconstruct_command(
     control_points: int = typer.Option(0, help="Override the number of control points (0 = preset)."),
     track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
     face_gaussians: int = typer.Option(-1, help="Face Gaussians on at most this many of the largest triangles (0 = every triangle; -1 = the preset's: quick 10000, paper all)."),
-    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render (recon/hidden_parts.py; helps wide-open mouths, noise elsewhere; default: the preset's, off)."),
+    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render in groups by where they lie across the opening that reveals them (recon/hidden_parts.py; where nothing opens, nothing moves; default: the preset's, on)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),

@@ -107,12 +107,11 @@ class VCDGSConfig:
     refine_weight: float = 0.01  # RefineMLP offsets stay small (appearance only, not geometry)
     output_smoothing: int = 4  # Laplacian smoothing steps on each output frame's non-rigid displacement (extract.
     #   smooth_displacements): removes per-vertex fitting noise that tilts normals; 0 = the raw Gaussian centres
-    hidden_pick: bool = False  # parts no training view sees at rest (teeth, mouth bag) may take the rigid motion of a
-    #   cluster of seen vertices, picked by mesh renders against the training images (recon/hidden_parts.py). Opt-in:
-    #   it helps where a mouth opens wide and is noise elsewhere (clean facecap mouth wide, ratio to static 0.427 ->
-    #   0.372, +30 s; paper-like defects: full mouth wide .01241 -> .01256, tongue .00882 -> .00938, and of the 20
-    #   facecap runs over all methods 5 better by 4-14 %, 15 the same or up to 7 % worse; docs/VCDGS_NOTES.md).
-    #   Runs after training, outside time_budget_s
+    hidden_pick: bool = True  # parts no training view sees at rest (teeth, mouth bag) may take the rigid motion of a
+    #   cluster of seen vertices, picked by mesh renders against the training images, in groups by where they lie
+    #   across the opening that reveals them (recon/hidden_parts.py); where nothing opens, nothing moves. Clean facecap
+    #   mouth wide 0.409 -> 0.219 of static, tongue 0.326 -> 0.222 (docs/VCDGS_NOTES.md). Runs after training,
+    #   outside time_budget_s (~10-25 s where something opens, 0.1 s where nothing does)
     hidden_pick_clusters: int = 8  # k-means clusters of the seen vertices' trajectories: the candidate motions
     hidden_pick_views: int = 5  # training views the renders are compared at (the canonical one and up to 4 around it)
     hidden_pick_min_vertices: int = 20  # smaller hidden parts keep their own motion

@@ -6,13 +6,23 @@ images set elsewhere (the lips, the skin in front), so after training they follo
 motions around them: on facecap's "mouth wide" the lower teeth stay with the head while the jaw
 drops. Images do see them once the mouth opens, but at 2 px a tooth the splat loss barely pulls.
 
-After training, each such part may take one of a few rigid motions instead of its own: those of
+After training, such parts may take one of a few rigid motions instead of their own: those of
 clusters of the seen vertices (k-means over their reconstructed trajectories, so the jaw, the
 skull and the cheeks come out as separate clusters), each fitted per frame (Kabsch). The pick
 compares mesh renders of the output with the training images at a few views near the canonical
-one, part by part (largest first), and keeps a part's own motion unless another one lowers the
-L1 image difference; a part that changes no rendered pixel under any candidate keeps its own.
-Opt-in (``config.hidden_pick``): it helps where a mouth opens wide and is noise elsewhere.
+one and keeps the own motion unless another one lowers the L1 image difference.
+
+Parts are decided in groups, not one by one: decided alone, an upper tooth moved down with the jaw
+fills the opening where the images show the lower teeth (the reconstructed upper lip sits a pixel
+low and covers the upper teeth the images show), so a part-by-part pick lowers the image loss while
+moving the teeth wrongly. The groups come from the opening that reveals the parts: pairs of seen
+vertices that touch at rest and move apart (the lips) give a plane through the slit, with the
+normal along their separation, and each hidden part goes by where it lies: wholly on one side,
+wholly on the other, across it evenly (a mouth bag, whose floor and roof move apart), or across it
+but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
+all its parts, by coordinate descent over the groups. Where nothing opens, nothing moves: the
+parts stay out of sight, and no render can tell their motions apart.
+Opt-in (``config.hidden_pick``).
 """
 
 from __future__ import annotations
@@ -26,22 +36,34 @@ from t2bs.geometry.mesh import Mesh, weld_index, welded_edges
 
 
 @dataclass
+class Opening:
+    """Where the seen surface opens (``find_opening``): a plane through the slit, in rest coordinates."""
+    point: np.ndarray  # [3] mean of the opening pairs' rest midpoints
+    normal: np.ndarray  # [3] unit: the pairs' main direction of separation, towards where the side that moves more goes
+    pairs: int  # pairs of seen vertices that open
+    frame: int  # frame where they are open widest
+
+
+@dataclass
 class HiddenPick:
-    """What ``pick_hidden_motions`` did: which parts, which motion each got, and what it cost."""
+    """What ``pick_hidden_motions`` did: which parts, how they were grouped, which motion each group got."""
     parts: list[np.ndarray] = field(default_factory=list)  # vertex indices of each hidden part
+    groups: list[list[int]] = field(default_factory=list)  # part indices of each group (GROUPS order, empty dropped)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
-    observable: list[bool] = field(default_factory=list)  # per part: some candidate changes a rendered pixel
+    observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
+    opening: Opening | None = None  # None: nothing opens, so every part keeps its own motion
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
-    sweeps: int = 0  # passes over the parts that ran
+    sweeps: int = 0  # passes over the groups that ran
     seconds: float = 0.0
 
     def summary(self) -> dict:
-        return {"hidden_parts": len(self.parts), "observable": int(sum(self.observable)),
-                "moved": int(sum(p >= 0 for p in self.picks)), "views": self.views,
-                "loss_before": round(self.loss_before, 6), "loss_after": round(self.loss_after, 6),
-                "seconds": round(self.seconds, 1)}
+        return {"hidden_parts": len(self.parts), "groups": [len(g) for g in self.groups],
+                "opening_pairs": self.opening.pairs if self.opening else 0,
+                "observable": int(sum(self.observable)), "moved": int(sum(p >= 0 for p in self.picks)),
+                "views": self.views, "loss_before": round(self.loss_before, 6),
+                "loss_after": round(self.loss_after, 6), "sweeps": self.sweeps, "seconds": round(self.seconds, 1)}
 
 
 def mesh_components(mesh: Mesh) -> np.ndarray:
@@ -126,16 +148,76 @@ def render_losses(renderer, mesh: Mesh, vertices: np.ndarray, images: np.ndarray
                             - images[v, t]).mean() for v in views for t in frames])
 
 
+def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, radius: float = 0.01,
+                 min_gap: float = 0.01, link: float = 0.02) -> Opening | None:
+    """The slit where the seen surface opens, or None: rest [N, 3], vertices [T, N, 3], seen [N] bool.
+    Opening pairs: seen vertices within ``radius`` of each other at rest that move more than ``min_gap``
+    further apart in some frame (all three fractions of the rest bounding-box diagonal); skin that merely
+    stretches does not double its edges, lips that part do. Pairs whose rest midpoints lie within ``link``
+    (or twice the pairs' median spacing, if more) of each other form one slit; where there are several (a
+    mouth and closed eyes that open), the one with the most pairs is taken."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(seen)
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    if len(idx) < 2 or diag <= 0:
+        return None
+    x = rest[idx].astype(np.float64)
+    pairs = cKDTree(x).query_pairs(radius * diag, output_type="ndarray")
+    if not len(pairs):
+        return None
+    i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    grow = np.linalg.norm(vertices[:, i] - vertices[:, j], axis=-1) - np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=-1)
+    opens = grow.max(0) > min_gap * diag
+    if not opens.any():
+        return None
+    mid = cKDTree(0.5 * (rest[i[opens]] + rest[j[opens]]))
+    if mid.n > 1:  # on a coarse mesh the pairs along one slit lie further apart: link at twice their usual spacing
+        link = max(link, 2.0 * float(np.median(mid.query(mid.data, k=2)[0][:, 1])) / diag)
+    _, slit = connected_components(mid.sparse_distance_matrix(mid, link * diag), directed=False)
+    largest = np.flatnonzero(opens)[slit == np.bincount(slit).argmax()]
+    i, j = i[largest], j[largest]
+    frame = int(np.argmax(grow[:, largest].sum(1)))
+    sep = (vertices[frame, i] - vertices[frame, j]) - (rest[i] - rest[j])  # [P, 3], each pair's sign arbitrary
+    normal = np.linalg.eigh(sep.T.astype(np.float64) @ sep)[1][:, -1]  # main axis of the separations
+    # Its sign: towards where the side that moves more goes (down, for a jaw): GROUPS' "moving side".
+    move_i, move_j = vertices[frame, i] - rest[i], vertices[frame, j] - rest[j]
+    mover = np.where((np.linalg.norm(move_i, axis=-1) >= np.linalg.norm(move_j, axis=-1))[:, None], move_i, move_j)
+    normal = normal if float((mover @ normal).sum()) >= 0 else -normal
+    return Opening(0.5 * (rest[i] + rest[j]).mean(0), normal, len(largest), frame)
+
+
+# Where a hidden part lies relative to the opening's plane (``group_parts``), in this order; the moving side is
+# the one the normal points to.
+GROUPS = ("moving side", "other side", "across, evenly", "across, mostly one side")
+
+
+def group_parts(rest: np.ndarray, parts: list[np.ndarray], opening: Opening, side_fraction: float = 0.9,
+                even: float = 0.7) -> list[list[int]]:
+    """Part indices of each group in GROUPS (empty groups dropped): a part with at least ``side_fraction``
+    of its vertices on one side of ``opening``'s plane lies on that side; one across it lies across
+    evenly when the shorter of its two reaches past the plane is at least ``even`` of the longer."""
+    label = []
+    for ix in parts:
+        s = (rest[ix] - opening.point) @ opening.normal
+        above = float((s > 0).mean())
+        reach = sorted([max(float(s.max()), 0.0), max(float(-s.min()), 0.0)])
+        label.append(0 if above >= side_fraction else 1 if above <= 1 - side_fraction
+                     else 2 if reach[0] >= even * reach[1] else 3)
+    return [g for g in ([p for p, lab in enumerate(label) if lab == k] for k in range(len(GROUPS))) if g]
+
+
 def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, images: np.ndarray,
                         cameras: list[Camera], views: list[int], frames: list[int], shading: str = "lambert",
                         clusters: int = 8, min_vertices: int = 20, seed: int = 0,
-                        renderer=None, sweeps: int = 1) -> tuple[np.ndarray, HiddenPick]:
-    """``vertices`` [T, N, 3] with each hidden part's motion replaced by the candidate rigid motion
-    whose mesh renders best match ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size) at
+                        renderer=None, sweeps: int = 4) -> tuple[np.ndarray, HiddenPick]:
+    """``vertices`` [T, N, 3] with each group of hidden parts moved by the candidate rigid motion whose
+    mesh renders best match ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size) at
     ``views`` x ``frames`` (module docstring). ``seen`` [N] bool: vertices some training view sees
-    at rest. ``sweeps``: passes over the parts (coordinate descent on the render loss, stopping early
-    when a pass moves nothing); 1 is the default and what ``config.hidden_pick`` runs: more sweeps lower
-    the loss but not the vertex error on facecap (benchmarks/hidden_pick.py). Returns (vertices, HiddenPick)."""
+    at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
+    takes the option that lowers the render loss most, the others fixed); it stops early when a pass
+    moves nothing. Returns (vertices, HiddenPick)."""
     import time
 
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -143,42 +225,45 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     t0 = time.time()
     out = np.array(vertices, np.float32, copy=True)
     report = HiddenPick(parts=hidden_parts(mesh, seen, min_vertices), views=list(views))
-    if not report.parts:
+    report.picks = [-1] * len(report.parts)
+    report.opening = find_opening(mesh.vertices, out, seen) if report.parts else None
+    rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed) if report.opening else ([], [])
+    if not len(rots):
         report.seconds = time.time() - t0
         return out, report
-    rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed)
+    report.groups = group_parts(mesh.vertices, report.parts, report.opening)
     own = renderer is None
     r = MeshRenderer() if own else renderer
     try:
-        def losses(verts: np.ndarray) -> np.ndarray:
-            return render_losses(r, mesh, verts, images, cameras, views, frames, shading)
+        def moved(group: list[int], c: int) -> np.ndarray:
+            """``out`` with the group's parts on option c (-1: each part's own motion)."""
+            trial = out.copy()
+            for p in group:
+                ix = report.parts[p]
+                trial[:, ix] = vertices[:, ix] if c < 0 else apply_motion(rots[c], trans[c], mesh.vertices[ix])
+            return trial
 
-        base = losses(out)
+        base = render_losses(r, mesh, out, images, cameras, views, frames, shading)
         report.loss_before = float(base.mean())
-        own_motion = [out[:, ix].copy() for ix in report.parts]
-        report.picks = [-1] * len(report.parts)
+        choice = [-1] * len(report.groups)
+        report.observable = [False] * len(report.groups)
         for sweep in range(sweeps):
-            moved = False
-            for p, ix in enumerate(report.parts):
-                pick, pick_losses, pick_motion, changed = report.picks[p], base, out[:, ix], False
-                for c in range(-1, len(rots)):  # -1: the part's own motion (an option from the second sweep on)
-                    if c == report.picks[p]:
+            changed = False
+            for g, group in enumerate(report.groups):
+                for c in range(-1, len(rots)):
+                    if c == choice[g]:
                         continue
-                    trial = out.copy()
-                    trial[:, ix] = motion = own_motion[p] if c < 0 else apply_motion(rots[c], trans[c], mesh.vertices[ix])
-                    trial_losses = losses(trial)
-                    changed = changed or bool(np.any(trial_losses != base))
-                    if trial_losses.mean() < pick_losses.mean():
-                        pick, pick_losses, pick_motion = c, trial_losses, motion
-                if sweep == 0:
-                    report.observable.append(changed)
-                moved = moved or pick != report.picks[p]
-                report.picks[p] = pick
-                out[:, ix] = pick_motion
-                base = pick_losses
+                    trial = moved(group, c)
+                    trial_losses = render_losses(r, mesh, trial, images, cameras, views, frames, shading)
+                    report.observable[g] = report.observable[g] or bool(np.any(trial_losses != base))
+                    if trial_losses.mean() < base.mean():  # strictly lower: ties keep the current option
+                        choice[g], base, out, changed = c, trial_losses, trial, True
             report.sweeps = sweep + 1
-            if not moved:
+            if not changed:
                 break
+        for g, group in enumerate(report.groups):
+            for p in group:
+                report.picks[p] = choice[g]
         report.loss_after = float(base.mean())
     finally:
         if own:
