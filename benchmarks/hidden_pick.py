@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections import Counter
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))

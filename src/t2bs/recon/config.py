@@ -111,7 +111,7 @@ class VCDGSConfig:
     #   cluster of seen vertices, picked by mesh renders against the training images, in groups by where they lie
     #   across the opening that reveals them (recon/hidden_parts.py); where nothing opens, nothing moves. Clean facecap
     #   mouth wide 0.409 -> 0.219 of static, tongue 0.326 -> 0.222 (docs/VCDGS_NOTES.md). Runs after training,
-    #   outside time_budget_s (~10-25 s where something opens, 0.1 s where nothing does)
+    #   outside time_budget_s (7-13 s a video where something opens, 0.1 s where nothing does)
     hidden_pick_clusters: int = 8  # k-means clusters of the seen vertices' trajectories: the candidate motions
     hidden_pick_views: int = 5  # training views the renders are compared at (the canonical one and up to 4 around it)
     hidden_pick_min_vertices: int = 20  # smaller hidden parts keep their own motion
