@@ -58,7 +58,7 @@ def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
     assert over == {"knn": 4, "hidden_pick": False, "track_weight": 0.0, "holdout_views": (4, 10), "perceptual": "dssim"}
     assert type(over["track_weight"]) is float and type(over["knn"]) is int
     cfg = preset("quick", **over)
-    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, False, (4, 10))  # on by default
+    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, False, (4, 10))  # --set turns off what is on by default
     assert parse_options(["hidden_pick=True"]) == {"hidden_pick": True}
     for bad, says in ((["knn"], "KEY=VALUE"), (["no_such=1"], "no VCDGS option 'no_such'"),
                       (["knn=four"], "not a valid int"), (["hidden_pick=maybe"], "not a valid bool")):

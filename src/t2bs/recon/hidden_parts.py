@@ -22,7 +22,7 @@ wholly on the other, across it evenly (a mouth bag, whose floor and roof move ap
 but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
 all its parts, by coordinate descent over the groups. Where nothing opens, nothing moves: the
 parts stay out of sight, and no render can tell their motions apart.
-Opt-in (``config.hidden_pick``).
+On by default (``config.hidden_pick``).
 """
 
 from __future__ import annotations
@@ -235,9 +235,9 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     own = renderer is None
     r = MeshRenderer() if own else renderer
     try:
-        def moved(group: list[int], c: int) -> np.ndarray:
-            """``out`` with the group's parts on option c (-1: each part's own motion)."""
-            trial = out.copy()
+        def moved(current: np.ndarray, group: list[int], c: int) -> np.ndarray:
+            """A copy of ``current`` with the group's parts on option c (-1: each part's own motion)."""
+            trial = current.copy()
             for p in group:
                 ix = report.parts[p]
                 trial[:, ix] = vertices[:, ix] if c < 0 else apply_motion(rots[c], trans[c], mesh.vertices[ix])
@@ -253,7 +253,7 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
                 for c in range(-1, len(rots)):
                     if c == choice[g]:
                         continue
-                    trial = moved(group, c)
+                    trial = moved(out, group, c)
                     trial_losses = render_losses(r, mesh, trial, images, cameras, views, frames, shading)
                     report.observable[g] = report.observable[g] or bool(np.any(trial_losses != base))
                     if trial_losses.mean() < base.mean():  # strictly lower: ties keep the current option
