@@ -51,7 +51,8 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
     t0 = time.time()
     name, mesh = load_asset(asset)
     rest, faces = mesh.vertices, mesh.faces
-    cfg = preset("quick", holdout_views=(4, 10), seed=seed)
+    # hidden_pick off: the probe runs the pick itself, on the reconstruction as training left it
+    cfg = preset("quick", holdout_views=(4, 10), seed=seed, hidden_pick=False)
     with MeshRenderer() as renderer:
         grid = make_grid(mesh, prompt, config=GridConfig(), defects=defect_preset("clean"), renderer=renderer)
         res = reconstruct_grid(mesh, grid, cfg, progress=False)
