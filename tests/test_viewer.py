@@ -29,7 +29,7 @@ from viewer_fixture import CAPTURE_ID, RETARGET_NAME, build_fixture_project  # n
 pytest.importorskip("viser", reason="viser not installed (pip install 't2bs[viewer]')")
 
 from t2bs.errors import UserError  # noqa: E402
-from t2bs.viewer.app import ViewerApp, load_retarget, mesh_glb  # noqa: E402
+from t2bs.viewer.app import NONE, ViewerApp, load_retarget, mesh_glb  # noqa: E402
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -53,6 +53,16 @@ def _port_free(port: int) -> bool:
 
 
 # ------------------------------------------------------------------------------ API, no browser
+
+
+def _frames_played(app: ViewerApp, n: int, seconds: float = 3.0) -> set[int]:
+    """Frame indices the playing timeline showed within ``seconds`` (stops early once ``n`` were seen)."""
+    seen = set()
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and len(seen) < n:
+        seen.add(app.mode[2])
+        time.sleep(0.02)
+    return seen
 
 
 def test_api_shapes_captures_retarget(project):
@@ -84,8 +94,9 @@ def test_api_shapes_captures_retarget(project):
         app.show_capture(CAPTURE_ID, frame=2)
         assert app.mode == ("capture", CAPTURE_ID, 2)
         np.testing.assert_array_equal(app.current_vertices(), info["recon"][2])
-        np.testing.assert_array_equal(app._capture_image.image, info["frames"][1, 2])  # canonical view = 1 of 3
-        assert app._capture_image.visible
+        image = app._timelines["capture"].image
+        np.testing.assert_array_equal(image.image, info["frames"][1, 2])  # canonical view = 1 of 3
+        assert image.visible
 
         # Retargeting: csv columns by name (PCA + semantic), unknown ones reported, time column used.
         assert app.retarget_names == [RETARGET_NAME]
@@ -93,7 +104,7 @@ def test_api_shapes_captures_retarget(project):
         rows = info["retarget_rows"]
         w = np.array([rows[4, 1], rows[4, 2] * scale[1]])
         np.testing.assert_allclose(app.current_vertices(), model.vertices(w), atol=1e-5)
-        assert "not_a_shape" in app._retarget_note.content
+        assert "not_a_shape" in app._timelines["retarget"].note.content
         with pytest.raises(UserError, match="no reconstructed capture 'x'"):
             app.show_capture("x")
 
@@ -104,13 +115,22 @@ def test_api_shapes_captures_retarget(project):
         # Playback advances the capture's frames at real time (8 fps here) and loops.
         app.show_capture(CAPTURE_ID, frame=0)
         app.set_playing("capture", True)
-        seen = set()
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline and len(seen) < 4:
-            seen.add(app.mode[2])
-            time.sleep(0.02)
+        assert _frames_played(app, 4) == {0, 1, 2, 3}
         app.set_playing("capture", False)
-        assert seen == {0, 1, 2, 3}
+
+        # The retargeting panel plays its rows at its csv's times (10 fps here); opening it stops the
+        # capture's playback, and choosing "(none)" in its dropdown goes back to the blendshapes.
+        timelines = app._timelines
+        app.set_playing("capture", True)
+        app.show_retarget(RETARGET_NAME, frame=0)
+        assert not timelines["capture"].play.value and app.mode == ("retarget", RETARGET_NAME, 0)
+        app.set_playing("retarget", True)
+        assert _frames_played(app, 5) == {0, 1, 2, 3, 4}
+        timelines["retarget"].dropdown.value = NONE
+        assert app.mode == ("shapes",) and not timelines["retarget"].play.value
+        assert timelines["retarget"].frame.disabled
+        with pytest.raises(UserError, match="playback kind must be capture or retarget"):
+            app.set_playing("shapes", True)
 
 
 def test_splats_and_rig_fallback(tmp_path):

@@ -79,6 +79,11 @@ class Retarget:
     shape_idx: np.ndarray  # [M] int index into the viewer's shapes for each weight column
     ignored: list[str] = field(default_factory=list)  # csv columns that name no shape
 
+    @property
+    def note(self) -> str:
+        """Shown under the retargeting panel's slider."""
+        return f"ignored columns: {', '.join(self.ignored)}" if self.ignored else ""
+
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """glTF vertex colours are linear; the mesh stores display (sRGB) colours."""
@@ -142,6 +147,22 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
         raise UserError(f"{path}: blendshape names are not unique ({', '.join(dup)})")
     what = f"{model.num_components} PCA components, {len([s for s in shapes if s.group == 'semantic'])} named shapes"
     return model.neutral.astype(np.float32), shapes, what
+
+
+NONE = "(none)"  # a timeline dropdown's entry for "nothing chosen"
+
+
+@dataclass
+class Timeline:
+    """The GUI of one timeline panel, captures or retargeting results (viser handles)."""
+
+    kind: str  # "capture" | "retarget": the mode tag (``ViewerApp.mode``) and ``set_playing``'s name
+    title: str  # its word in the status line ("capture", "retargeting")
+    dropdown: object  # which capture / result; NONE when nothing is chosen
+    frame: object  # frame slider
+    play: object  # play checkbox
+    note: object  # markdown under the slider: load errors and what does not line up
+    image: object | None = None  # the input's canonical view at the shown frame (captures only)
 
 
 def list_captures(root: Path) -> list[str]:
@@ -325,7 +346,7 @@ class ViewerApp:
         self._lock = threading.RLock()
         self._values = np.zeros(len(self.shapes), np.float64)  # [M] slider values
         self._mode: tuple = ("shapes",)  # ("shapes",) | ("capture", id, t) | ("retarget", name, t)
-        self._open_at = 0  # frame at which a capture / retargeting chosen in its dropdown opens (show_capture sets it)
+        self._open_at = 0  # frame at which a capture / retargeting chosen in its dropdown opens (_open sets it)
         self._requested = 0  # version of the newest state
         self._pushed = 0  # version of the newest state queued to the clients
         self._pushed_cv = threading.Condition()
@@ -404,36 +425,18 @@ class ViewerApp:
     def show_capture(self, video_id: str, frame: int = 0, wait: bool = True) -> None:
         if video_id not in self.capture_ids:
             raise UserError(f"no reconstructed capture {video_id!r}; have {', '.join(self.capture_ids) or 'none'}")
-        # The dropdown's callback (viser runs it synchronously) opens a newly chosen capture at
-        # the requested frame rather than at 0: pushing frame 0 first let a slow browser draw
-        # and hold it. Unchanged dropdown: no callback, so set the frame here.
-        self._open_at = int(frame)
-        try:
-            self._capture_dd.value = video_id
-        finally:
-            self._open_at = 0
-        self._set_capture(video_id, int(frame))
-        if wait:
-            self.wait_idle()
+        self._open("capture", video_id, frame, wait)
 
     def show_retarget(self, name: str, frame: int = 0, wait: bool = True) -> None:
         if name not in self.retarget_names:
             raise UserError(f"no retargeting result {name!r}; have {', '.join(self.retarget_names) or 'none'}")
-        self._open_at = int(frame)  # as in show_capture
-        try:
-            self._retarget_dd.value = name
-        finally:
-            self._open_at = 0
-        self._set_retarget(name, int(frame))
-        if wait:
-            self.wait_idle()
+        self._open("retarget", name, frame, wait)
 
     def set_playing(self, kind: str, playing: bool) -> None:
         """Start/stop playback of the selected capture ("capture") or retargeting ("retarget")."""
-        box = {"capture": self._capture_play, "retarget": self._retarget_play}.get(kind)
-        if box is None:
+        if kind not in self._timelines:
             raise UserError(f"playback kind must be capture or retarget, got {kind!r}")
-        box.value = bool(playing)
+        self._timelines[kind].play.value = bool(playing)
 
     def current_vertices(self) -> np.ndarray:
         """[N, 3] the vertices the viewer shows (after wait_idle: what the clients were sent)."""
@@ -529,72 +532,14 @@ class ViewerApp:
                     self._show_splats = bool(splat_box.value)
                 self._schedule()
 
-        with gui.add_folder("Captures"):
-            if not self.capture_ids:
-                gui.add_markdown("No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).")
-            self._capture_dd = gui.add_dropdown("Capture", ("(none)", *self.capture_ids), initial_value="(none)",
-                                                disabled=not self.capture_ids)
-            self._capture_frame = gui.add_slider("Capture frame", min=0, max=1, step=1, initial_value=0, disabled=True)
-            self._capture_play = gui.add_checkbox("Play capture", initial_value=False, disabled=True)
-            self._capture_note = gui.add_markdown("")
-            self._capture_image = gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)",
-                                                visible=False)
-
-            @self._capture_dd.on_update
-            def _(_event) -> None:
-                vid = self._capture_dd.value
-                if vid == "(none)":
-                    self._capture_play.value = False
-                    for h in (self._capture_frame, self._capture_play):
-                        h.disabled = True
-                    self._capture_image.visible = False
-                    with self._lock:
-                        if self._mode[0] == "capture":
-                            self._show_shapes()
-                    return
-                self._set_capture(vid, self._open_at)
-
-            @self._capture_frame.on_update
-            def _(_event) -> None:
-                vid = self._capture_dd.value
-                if vid != "(none)":
-                    self._set_capture(vid, int(self._capture_frame.value))
-
-            @self._capture_play.on_update
-            def _(_event) -> None:
-                self._start_play("capture", self._capture_play.value)
-
-        with gui.add_folder("Retargeting"):
-            if not self.retarget_names:
-                gui.add_markdown("No retargeting results (`retarget/NAME/weights.csv`).")
-            self._retarget_dd = gui.add_dropdown("Result", ("(none)", *self.retarget_names), initial_value="(none)",
-                                                 disabled=not self.retarget_names)
-            self._retarget_frame = gui.add_slider("Retarget frame", min=0, max=1, step=1, initial_value=0, disabled=True)
-            self._retarget_play = gui.add_checkbox("Play retargeting", initial_value=False, disabled=True)
-            self._retarget_note = gui.add_markdown("")
-
-            @self._retarget_dd.on_update
-            def _(_event) -> None:
-                name = self._retarget_dd.value
-                if name == "(none)":
-                    self._retarget_play.value = False
-                    for h in (self._retarget_frame, self._retarget_play):
-                        h.disabled = True
-                    with self._lock:
-                        if self._mode[0] == "retarget":
-                            self._show_shapes()
-                    return
-                self._set_retarget(name, self._open_at)
-
-            @self._retarget_frame.on_update
-            def _(_event) -> None:
-                name = self._retarget_dd.value
-                if name != "(none)":
-                    self._set_retarget(name, int(self._retarget_frame.value))
-
-            @self._retarget_play.on_update
-            def _(_event) -> None:
-                self._start_play("retarget", self._retarget_play.value)
+        self._timelines = {
+            "capture": self._add_timeline(
+                "capture", "capture", "Captures", ("Capture", "Capture frame", "Play capture"), self.capture_ids,
+                "No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).", image=True),
+            "retarget": self._add_timeline(
+                "retarget", "retargeting", "Retargeting", ("Result", "Retarget frame", "Play retargeting"),
+                self.retarget_names, "No retargeting results (`retarget/NAME/weights.csv`)."),
+        }
 
         with gui.add_folder("Blendshapes"):
             reset = gui.add_button("Reset")
@@ -615,6 +560,45 @@ class ViewerApp:
                         h.on_update(self._slider_callback(i))
                         self._sliders[i] = h
 
+    def _add_timeline(self, kind: str, title: str, folder: str, labels: tuple[str, str, str], names: list[str],
+                      empty: str, image: bool = False) -> Timeline:
+        """One timeline panel: a dropdown of ``names``, a frame slider and a play box (``labels``)."""
+        gui = self.server.gui
+        with gui.add_folder(folder):
+            if not names:
+                gui.add_markdown(empty)
+            tl = Timeline(kind, title,
+                          dropdown=gui.add_dropdown(labels[0], (NONE, *names), initial_value=NONE, disabled=not names),
+                          frame=gui.add_slider(labels[1], min=0, max=1, step=1, initial_value=0, disabled=True),
+                          play=gui.add_checkbox(labels[2], initial_value=False, disabled=True),
+                          note=gui.add_markdown(""),
+                          image=gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)",
+                                              visible=False) if image else None)
+
+        @tl.dropdown.on_update
+        def _(_event) -> None:
+            if tl.dropdown.value == NONE:
+                tl.play.value = False
+                tl.frame.disabled = tl.play.disabled = True
+                if tl.image is not None:
+                    tl.image.visible = False
+                with self._lock:
+                    if self._mode[0] == kind:
+                        self._show_shapes()
+                return
+            self._set_frame(kind, tl.dropdown.value, self._open_at)
+
+        @tl.frame.on_update
+        def _(_event) -> None:
+            if tl.dropdown.value != NONE:
+                self._set_frame(kind, tl.dropdown.value, int(tl.frame.value))
+
+        @tl.play.on_update
+        def _(_event) -> None:
+            self._start_play(kind, tl.play.value)
+
+        return tl
+
     def _slider_callback(self, i: int):
         def cb(_event) -> None:
             with self._lock:
@@ -630,8 +614,8 @@ class ViewerApp:
         with self._lock:
             if self._mode[0] != "shapes":
                 self._mode = ("shapes",)
-                self._capture_play.value = False
-                self._retarget_play.value = False
+                for tl in self._timelines.values():
+                    tl.play.value = False
             self._status.content = "Showing: blendshapes"
         self._schedule()
 
@@ -654,51 +638,47 @@ class ViewerApp:
             self._retargets[name] = load_retarget(self.root, name, self.shapes)
         return self._retargets[name]
 
-    def _set_capture(self, vid: str, t: int) -> None:
-        try:
-            cap = self._capture(vid)
-        except UserError as exc:
-            self._capture_note.content = f"error: {exc}"
-            return
-        nt = cap.vertices.shape[0]
-        t = int(min(max(t, 0), nt - 1))
-        with self._lock:
-            self._capture_frame.max = max(nt - 1, 1)
-            self._capture_frame.disabled = nt < 2
-            self._capture_play.disabled = nt < 2
-            if self._capture_frame.value != t:
-                self._capture_frame.value = t  # re-enters here once with the same t
-            if cap.frames is not None:
-                self._capture_image.image = cap.frames[min(t, len(cap.frames) - 1)]
-                self._capture_image.visible = True
-            else:
-                self._capture_image.visible = False
-            self._capture_note.content = cap.note
-            if self._mode[0] == "retarget":
-                self._retarget_play.value = False
-            self._mode = ("capture", vid, t)
-            self._status.content = f"Showing: capture {vid}, frame {t + 1}/{nt} ({cap.times[t]:.2f} s)"
-        self._schedule()
+    def _loaded(self, kind: str) -> dict:
+        """Captures or retargeting results loaded so far, by name."""
+        return self._captures if kind == "capture" else self._retargets
 
-    def _set_retarget(self, name: str, t: int) -> None:
+    def _open(self, kind: str, name: str, frame: int, wait: bool) -> None:
+        # The dropdown's callback (viser runs it synchronously) opens a newly chosen capture at
+        # the requested frame rather than at 0: pushing frame 0 first let a slow browser draw
+        # and hold it. Unchanged dropdown: no callback, so set the frame here.
+        self._open_at = int(frame)
         try:
-            rt = self._retarget(name)
+            self._timelines[kind].dropdown.value = name
+        finally:
+            self._open_at = 0
+        self._set_frame(kind, name, int(frame))
+        if wait:
+            self.wait_idle()
+
+    def _set_frame(self, kind: str, name: str, t: int) -> None:
+        """Show frame t of capture / retargeting result ``name`` (loading it on first use)."""
+        tl = self._timelines[kind]
+        try:
+            item = self._capture(name) if kind == "capture" else self._retarget(name)
         except UserError as exc:
-            self._retarget_note.content = f"error: {exc}"
+            tl.note.content = f"error: {exc}"
             return
-        nt = rt.weights.shape[0]
+        nt = len(item.times)
         t = int(min(max(t, 0), nt - 1))
         with self._lock:
-            self._retarget_frame.max = max(nt - 1, 1)
-            self._retarget_frame.disabled = nt < 2
-            self._retarget_play.disabled = nt < 2
-            if self._retarget_frame.value != t:
-                self._retarget_frame.value = t
-            self._retarget_note.content = f"ignored columns: {', '.join(rt.ignored)}" if rt.ignored else ""
-            if self._mode[0] == "capture":
-                self._capture_play.value = False
-            self._mode = ("retarget", name, t)
-            self._status.content = f"Showing: retargeting {name}, frame {t + 1}/{nt} ({rt.times[t]:.2f} s)"
+            tl.frame.max = max(nt - 1, 1)
+            tl.frame.disabled = tl.play.disabled = nt < 2
+            if tl.frame.value != t:
+                tl.frame.value = t  # re-enters here once with the same t
+            if tl.image is not None:
+                if item.frames is not None:
+                    tl.image.image = item.frames[min(t, len(item.frames) - 1)]
+                tl.image.visible = item.frames is not None
+            tl.note.content = item.note
+            if self._mode[0] not in ("shapes", kind):
+                self._timelines[self._mode[0]].play.value = False
+            self._mode = (kind, name, t)
+            self._status.content = f"Showing: {tl.title} {name}, frame {t + 1}/{nt} ({item.times[t]:.2f} s)"
         self._schedule()
 
     def _vertices_for(self, mode: tuple) -> np.ndarray:
@@ -767,36 +747,23 @@ class ViewerApp:
             if not playing:
                 self._play_start.pop(kind, None)
                 return
-            if kind == "capture":
-                vid = self._capture_dd.value
-                if vid == "(none)" or vid not in self._captures:
-                    return
-                times, t = self._captures[vid].times, int(self._capture_frame.value)
-            else:
-                name = self._retarget_dd.value
-                if name == "(none)" or name not in self._retargets:
-                    return
-                times, t = self._retargets[name].times, int(self._retarget_frame.value)
+            tl = self._timelines[kind]
+            item = self._loaded(kind).get(tl.dropdown.value)
+            if item is None:
+                return
+            times, t = item.times, int(tl.frame.value)
             self._play_start[kind] = (time.monotonic(), float(times[min(t, len(times) - 1)] - times[0]))
 
     def _play_loop(self) -> None:
         """Advance the playing timeline at real time (looping), ~30 updates per second."""
         while not self._stopping.wait(1 / 30):
-            for kind in ("capture", "retarget"):
+            for kind, tl in self._timelines.items():
                 with self._lock:
                     start = self._play_start.get(kind)
-                    if start is None:
+                    item = self._loaded(kind).get(tl.dropdown.value)
+                    if start is None or item is None or len(item.times) < 2:
                         continue
-                    if kind == "capture":
-                        vid = self._capture_dd.value
-                        times = self._captures[vid].times if vid in self._captures else None
-                        slider = self._capture_frame
-                    else:
-                        name = self._retarget_dd.value
-                        times = self._retargets[name].times if name in self._retargets else None
-                        slider = self._retarget_frame
-                    if times is None or len(times) < 2:
-                        continue
+                    times, slider = item.times, tl.frame
                     # One frame period past the last frame before looping, so the last frame shows.
                     period = float(times[-1] - times[0]) + float(np.median(np.diff(times)))
                     media = (start[1] + time.monotonic() - start[0]) % period
