@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from t2bs.geometry.camera import orbit_cameras
-from t2bs.geometry.mesh import Mesh, merge_meshes
+from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
 from t2bs.recon.hidden_parts import (GROUPS, Opening, cluster_motions, compare_views, find_opening, group_parts, hidden_parts,
-                                     mesh_components, pick_hidden_motions)
+                                     pick_hidden_motions)
 from t2bs.recon.tracks import rest_visibility
 
 FRAMES = 5
@@ -54,7 +54,7 @@ def scene_images(renderer) -> tuple[list, np.ndarray]:
 
 def test_components_and_hidden_parts():
     mesh, _, _, idx = scene()
-    label = mesh_components(mesh)
+    label = welded_components(mesh.vertices, mesh.faces)
     assert len(np.unique(label)) == 4
     for ix in idx.values():
         assert len(np.unique(label[ix])) == 1

@@ -139,6 +139,20 @@ def welded_edges(node: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.unique(e[e[:, 0] != e[:, 1]], axis=0)
 
 
+def welded_components(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[N] int64 connected-part label of each vertex over the welded mesh (``weld_index``: UV-seam copies of a
+    vertex are one point, so a part is what the surface connects, not what the exporter's islands say)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    node, first = weld_index(vertices)
+    e = welded_edges(node, faces) if len(faces) else np.zeros((0, 2), np.int64)
+    m = len(first)
+    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m))
+    _, label = connected_components(adj, directed=False)
+    return label[node].astype(np.int64)
+
+
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup of ``texture`` [H, W, 3] uint8 at ``uv`` [N, 2] -> [N, 3] float in [0, 1]."""
     h, w = texture.shape[:2]

@@ -36,6 +36,9 @@ class VCDGSConfig:
     # --- control points (appendix) ---
     num_control_points: int = 400  # k; the paper uses 2000
     knn: int = 10  # control points per Gaussian (paper: 10)
+    min_part_control_points: int = 0  # each connected part gets at least this many control points of its own (0 =
+    #   farthest-point sampling alone, the paper's): FPS spreads them by space and leaves a small part (a lip tube,
+    #   the inside of a mouth, a tooth) one or none, so its vertices are skinned to another part's
     control_neighbours: int = 6  # control-point neighbours used by the rigidity regulariser
     anchor_first_frame: bool = True  # frame 0 is the static mesh (paper §3.1.2: the grid's first column is the
     #   fixed-time render of the static asset), so the shared deformation of t = 0 is held at the identity
@@ -131,8 +134,8 @@ class VCDGSConfig:
             raise UserError(f"unknown method {self.method!r}; use one of {', '.join(METHODS)}")
         if self.resolution < 16:
             raise UserError(f"resolution {self.resolution} is too small (>= 16 px)")
-        if self.num_control_points < 1 or self.knn < 1:
-            raise UserError("num_control_points and knn must be >= 1")
+        if self.num_control_points < 1 or self.knn < 1 or self.min_part_control_points < 0:
+            raise UserError("num_control_points and knn must be >= 1, min_part_control_points >= 0")
         if self.perceptual not in ("auto", "lpips", "dssim", "none"):
             raise UserError(f"perceptual must be auto|lpips|dssim|none, got {self.perceptual!r}")
         if self.track_views not in ("all", "canonical"):

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from t2bs.geometry.camera import Camera
-from t2bs.geometry.mesh import Mesh, weld_index, welded_edges
+from t2bs.geometry.mesh import Mesh, welded_components
 
 
 @dataclass
@@ -66,23 +66,10 @@ class HiddenPick:
                 "loss_after": round(self.loss_after, 6), "sweeps": self.sweeps, "seconds": round(self.seconds, 1)}
 
 
-def mesh_components(mesh: Mesh) -> np.ndarray:
-    """[N] int64 connected-part label of each vertex, over the welded mesh (UV-seam copies are one point)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    node, first = weld_index(mesh.vertices)
-    e = welded_edges(node, mesh.faces) if len(mesh.faces) else np.zeros((0, 2), np.int64)
-    m = len(first)
-    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m))
-    _, label = connected_components(adj, directed=False)
-    return label[node].astype(np.int64)
-
-
 def hidden_parts(mesh: Mesh, seen: np.ndarray, min_vertices: int = 20) -> list[np.ndarray]:
     """Vertex indices of each connected part with no vertex in ``seen`` [N] bool and at least
     ``min_vertices`` vertices (smaller ones are specks, not worth a render), largest first."""
-    label = mesh_components(mesh)
+    label = welded_components(mesh.vertices, mesh.faces)
     out = [np.flatnonzero(label == p) for p in np.unique(label)]
     out = [ix for ix in out if len(ix) >= min_vertices and not seen[ix].any()]
     return sorted(out, key=len, reverse=True)

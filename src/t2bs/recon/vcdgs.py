@@ -180,7 +180,7 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
             data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
             data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
     cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
-                               seed=cfg.seed)
+                               seed=cfg.seed, min_per_part=cfg.min_part_control_points)
     model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
                        data.views, data.frames, data.canonical_view, cfg, gs.faces, gs.face_colors, gs.face_log_scale)
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
