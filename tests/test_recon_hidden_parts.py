@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import roma
+import torch
 
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
-from t2bs.recon.hidden_parts import (GROUPS, Opening, cluster_motions, compare_views, find_opening, group_parts, hidden_parts,
-                                     pick_hidden_motions)
+from t2bs.recon.hidden_parts import (GROUPS, Opening, apply_motion, cluster_motions, compare_views, find_opening,
+                                     group_parts, hidden_parts, pick_hidden_motions, robust_rigid_motion)
 from t2bs.recon.tracks import rest_visibility
 
 FRAMES = 5
@@ -167,6 +169,45 @@ def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_ope
                                       min_vertices=4, renderer=mesh_renderer)
     assert report.opening is None and report.picks == [-1, -1] and report.groups == [] and report.loss_before == 0.0
     assert np.array_equal(out, still)
+
+
+def test_robust_rigid_motion_ignores_the_points_that_deform():
+    """Most points move rigidly, a fifth deform (a smile's lips): the reweighted fit recovers the rigid motion,
+    one plain least-squares fit (iterations=1) is pulled away by the deforming points."""
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(200, 3))
+    rot = roma.rotvec_to_rotmat(torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.2, -0.1], [0.0, -0.3, 0.2]], dtype=torch.float64))
+    trans = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.2, -0.1]])
+    moved = apply_motion(rot.numpy(), trans, rest)
+    moved[1:, :40] += rng.normal(size=(2, 40, 3)) * 0.3
+    r, t = robust_rigid_motion(rest, moved)
+    assert np.abs(r - rot.numpy()).max() < 1e-6 and np.abs(t - trans).max() < 1e-6
+    r1, _ = robust_rigid_motion(rest, moved, iterations=1)
+    assert np.abs(r1 - rot.numpy()).max() > 1e-3
+
+
+def test_closed_rigid_gives_hidden_parts_the_head_motion_where_nothing_opens(mesh_renderer):
+    """Nothing opens (the whole scene turns as one, as a head does): by default the hidden parts keep their own
+    (wrong) motion; with closed_rigid they take the seen surface's, which is the true one here."""
+    mesh, _, _, idx = scene()
+    cameras, images = scene_images(mesh_renderer)
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    s = np.linspace(0.0, 1.0, FRAMES)
+    rot = roma.rotvec_to_rotmat(torch.tensor(s[:, None] * np.array([0.0, 0.3, 0.1]))).numpy()
+    true = apply_motion(rot, s[:, None] * np.array([0.02, 0.0, 0.0]), mesh.vertices).astype(np.float32)
+    recon = true.copy()
+    recon[:, idx["red"]] -= s[:, None, None] * np.array([0.0, DROP, 0.0], np.float32)  # dragged by a blend
+    recon[:, idx["head"][-6:]] += s[:, None, None] * np.array([0.0, 0.03, 0.0], np.float32)  # its top row deforms
+    args = (mesh, recon, seen, images, cameras, [2], [1])
+    kept, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    assert report.opening is None and not report.closed_rigid and np.array_equal(kept, recon)
+    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer,
+                                      closed_rigid=True)
+    assert report.opening is None and report.closed_rigid and report.summary()["moved"] == 2
+    hidden = np.concatenate([idx["red"], idx["green"]])
+    assert np.abs(out[:, hidden] - true[:, hidden]).max() < 1e-5
+    keep = np.setdiff1d(np.arange(mesh.num_vertices), hidden)
+    assert np.array_equal(out[:, keep], recon[:, keep])  # seen vertices are never touched
 
 
 def test_reconstruction_picks_on_its_training_views(mesh_renderer):

@@ -20,8 +20,11 @@ vertices that touch at rest and move apart (the lips) give a plane through the s
 normal along their separation, and each hidden part goes by where it lies: wholly on one side,
 wholly on the other, across it evenly (a mouth bag, whose floor and roof move apart), or across it
 but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
-all its parts, by coordinate descent over the groups. Where nothing opens, nothing moves: the
-parts stay out of sight, and no render can tell their motions apart.
+all its parts, by coordinate descent over the groups. Where nothing opens, no render can tell
+their motions apart: by default nothing moves; with ``closed_rigid`` (``config.hidden_pick_closed_rigid``,
+opt-in) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
+head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
+drags them along while they should follow the skull.
 On by default (``config.hidden_pick``).
 """
 
@@ -51,7 +54,8 @@ class HiddenPick:
     groups: list[list[int]] = field(default_factory=list)  # part indices of each group (GROUPS order, empty dropped)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
     observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
-    opening: Opening | None = None  # None: nothing opens, so every part keeps its own motion
+    opening: Opening | None = None  # None: nothing opens, so every part keeps its own motion (or, closed_rigid, the head's)
+    closed_rigid: bool = False  # nothing opens and every part took the seen surface's robust rigid motion
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
@@ -61,7 +65,8 @@ class HiddenPick:
     def summary(self) -> dict:
         return {"hidden_parts": len(self.parts), "groups": [len(g) for g in self.groups],
                 "opening_pairs": self.opening.pairs if self.opening else 0,
-                "observable": int(sum(self.observable)), "moved": int(sum(p >= 0 for p in self.picks)),
+                "observable": int(sum(self.observable)), "closed_rigid": self.closed_rigid,
+                "moved": len(self.parts) if self.closed_rigid else int(sum(p >= 0 for p in self.picks)),
                 "views": self.views, "loss_before": round(self.loss_before, 6),
                 "loss_after": round(self.loss_after, 6), "sweeps": self.sweeps, "seconds": round(self.seconds, 1)}
 
@@ -102,6 +107,25 @@ def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, cl
         rots.append(r.numpy())
         trans.append(t.numpy())
     return (np.stack(rots), np.stack(trans)) if rots else none
+
+
+def robust_rigid_motion(rest: np.ndarray, vertices: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """The dominant rigid motion of points ``rest`` [n, 3] moving to ``vertices`` [T, n, 3] -> (rotations [T, 3, 3],
+    translations [T, 3]): a least-squares fit (Kabsch) refitted ``iterations`` - 1 times with Cauchy weights on its
+    residuals (scale: their median per frame), so points that deform (smiling lips, cheeks) drop out and the
+    motion most of them share (the head's) remains. One plain fit would be pulled towards the deforming points."""
+    import roma
+    import torch
+
+    x = torch.as_tensor(np.asarray(rest), dtype=torch.float64).expand(len(vertices), -1, -1)
+    y = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
+    w = torch.ones(y.shape[:2], dtype=torch.float64)
+    for i in range(max(int(iterations), 1)):
+        r, t = roma.rigid_points_registration(x, y, weights=w)
+        residual = (x @ r.transpose(-1, -2) + t[:, None] - y).norm(dim=-1)  # [T, n]
+        scale = residual.median(dim=1, keepdim=True).values.clamp_min(1e-12)
+        w = 1.0 / (1.0 + (residual / scale) ** 2)
+    return r.numpy(), t.numpy()
 
 
 def apply_motion(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -198,13 +222,14 @@ def group_parts(rest: np.ndarray, parts: list[np.ndarray], opening: Opening, sid
 def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, images: np.ndarray,
                         cameras: list[Camera], views: list[int], frames: list[int], shading: str = "lambert",
                         clusters: int = 8, min_vertices: int = 20, seed: int = 0,
-                        renderer=None, sweeps: int = 4) -> tuple[np.ndarray, HiddenPick]:
+                        renderer=None, sweeps: int = 4, closed_rigid: bool = False) -> tuple[np.ndarray, HiddenPick]:
     """``vertices`` [T, N, 3] with each group of hidden parts moved by the candidate rigid motion whose
     mesh renders best match ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size) at
     ``views`` x ``frames`` (module docstring). ``seen`` [N] bool: vertices some training view sees
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
-    moves nothing. Returns (vertices, HiddenPick)."""
+    moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
+    seen vertices instead of keeping its own. Returns (vertices, HiddenPick)."""
     import time
 
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -214,6 +239,11 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     report = HiddenPick(parts=hidden_parts(mesh, seen, min_vertices), views=list(views))
     report.picks = [-1] * len(report.parts)
     report.opening = find_opening(mesh.vertices, out, seen) if report.parts else None
+    if report.parts and report.opening is None and closed_rigid and seen.sum() >= 3:
+        rots, trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
+        for ix in report.parts:
+            out[:, ix] = apply_motion(rots, trans, mesh.vertices[ix])
+        report.closed_rigid = True
     rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed) if report.opening else ([], [])
     if not len(rots):
         report.seconds = time.time() - t0

@@ -527,7 +527,7 @@ def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfi
     frames = list(range(1, data.frames, 2))  # every other frame after the rest pose
     verts, report = pick_hidden_motions(mesh, verts, seen, data.images.cpu().numpy(), data.cameras, views, frames,
                                         data.shading, cfg.hidden_pick_clusters, cfg.hidden_pick_min_vertices,
-                                        seed=cfg.seed)
+                                        seed=cfg.seed, closed_rigid=cfg.hidden_pick_closed_rigid)
     return verts, report.summary()
 
 
