@@ -120,7 +120,7 @@ def robust_rigid_motion(rest: np.ndarray, vertices: np.ndarray, iterations: int 
     x = torch.as_tensor(np.asarray(rest), dtype=torch.float64).expand(len(vertices), -1, -1)
     y = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
     w = torch.ones(y.shape[:2], dtype=torch.float64)
-    for i in range(max(int(iterations), 1)):
+    for _ in range(max(int(iterations), 1)):
         r, t = roma.rigid_points_registration(x, y, weights=w)
         residual = (x @ r.transpose(-1, -2) + t[:, None] - y).norm(dim=-1)  # [T, n]
         scale = residual.median(dim=1, keepdim=True).values.clamp_min(1e-12)
@@ -240,9 +240,9 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     report.picks = [-1] * len(report.parts)
     report.opening = find_opening(mesh.vertices, out, seen) if report.parts else None
     if report.parts and report.opening is None and closed_rigid and seen.sum() >= 3:
-        rots, trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
+        head_rots, head_trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
         for ix in report.parts:
-            out[:, ix] = apply_motion(rots, trans, mesh.vertices[ix])
+            out[:, ix] = apply_motion(head_rots, head_trans, mesh.vertices[ix])
         report.closed_rigid = True
     rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed) if report.opening else ([], [])
     if not len(rots):
