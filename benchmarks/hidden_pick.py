@@ -40,8 +40,8 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.recon.config import preset
     from t2bs.eval.metrics import geometry_metrics
-    from t2bs.recon.hidden_parts import (apply_motion, cluster_motions, compare_views, hidden_parts,
-                                         pick_hidden_motions, render_losses)
+    from t2bs.geometry.rigid import apply_motion
+    from t2bs.recon.hidden_parts import cluster_motions, compare_views, hidden_parts, pick_hidden_motions, render_losses
     from t2bs.recon.tracks import rest_visibility
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer

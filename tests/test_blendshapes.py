@@ -49,10 +49,11 @@ def test_basis_is_orthonormal_and_sorted(toy):
 
 def test_rank_cap_and_component_cap(toy):
     neutral, _, caps, _ = toy
-    full = build_model(neutral, caps, components=100)
+    # The PCA itself (head motion left in: the toy's random offsets have a small rigid part of their own).
+    full = build_model(neutral, caps, components=100, remove_head_motion=False)
     assert full.num_components == 5 == full.meta["rank"]  # 5 morph targets generated the data
     assert full.explained_variance.sum() == pytest.approx(1.0, abs=1e-6)
-    two = build_model(neutral, caps, components=2)
+    two = build_model(neutral, caps, components=2, remove_head_motion=False)
     assert two.num_components == 2 and two.meta["rank"] == 5
     assert two.explained_variance.sum() < 1.0
     np.testing.assert_allclose(two.explained_variance, full.explained_variance[:2], rtol=1e-6)
@@ -61,14 +62,66 @@ def test_rank_cap_and_component_cap(toy):
 def test_reconstruction_exact_on_training_frames(toy):
     neutral, _, caps, _ = toy
     model = build_model(neutral, caps, components=100)
-    for vid, frames in caps.items():
-        recon = model.vertices(model.capture_weights[vid])
-        assert np.abs(recon - frames).max() < 1e-5
+    for vid, frames in caps.items():  # the expression weights posed, then the capture's head track
+        assert np.abs(model.capture_frames(vid) - frames).max() < 1e-5
+
+
+def _turning_captures(neutral: np.ndarray, offsets: dict[str, np.ndarray], frames: int = 8) -> dict[str, np.ndarray]:
+    """Per name, a capture ramping ``offsets[name]`` [N, 3] (or nothing, for None) from 0 to 1 while the head turns
+    up to 12 degrees about y and nods 5 about x, differently per capture."""
+    import roma
+    import torch
+
+    caps = {}
+    for i, (name, off) in enumerate(sorted(offsets.items())):
+        s = np.linspace(0.0, 1.0, frames)
+        rv = np.stack([np.radians(5.0) * np.sin(np.pi * s + i), np.radians(12.0) * np.sin(2 * np.pi * s * (1 + 0.3 * i)),
+                       np.zeros(frames)], 1)
+        rot = roma.rotvec_to_rotmat(torch.as_tensor(rv)).numpy()
+        pose = neutral[None].astype(np.float64) + (0 if off is None else s[:, None, None] * off[None])
+        caps[f"{name}-s0"] = (np.einsum("tij,tnj->tni", rot, pose) + np.array([0.01 * i, 0.0, 0.02])).astype(np.float32)
+    return caps
+
+
+def test_captures_that_only_turn_the_head_have_no_component(toy):
+    neutral = toy[0]
+    caps = _turning_captures(neutral, {"shaking the head": None, "nodding": None, "looking around": None})
+    model = build_model(neutral, caps, components=100)
+    assert len(model.visible_components()) == 0  # what is left is rounding: nothing moves a vertex by a pixel
+    assert build_model(neutral, caps, components=100, remove_head_motion=False).visible.sum() >= 2  # the turns
+
+
+def test_components_are_expressions_oriented_into_the_observed_range():
+    """Two local expressions (a lid sliding down, a mouth corner going up) under head turns: the components span
+    the two expressions (no head turn), each oriented so that its observed weights lie in [0, max] (up to noise)."""
+    import trimesh
+
+    neutral = np.asarray(trimesh.creation.icosphere(subdivisions=3).vertices, np.float32)
+    lid, corner = np.zeros_like(neutral), np.zeros_like(neutral)
+    lid[neutral[:, 2] > 0.9, 1] = -0.06
+    corner[(neutral[:, 1] < -0.6) & (neutral[:, 0] > 0.3), 1] = 0.05
+    caps = _turning_captures(neutral, {"blinking": lid, "smiling": corner, "shaking the head": None})
+    model = build_model(neutral, caps, components=100)
+    vis = model.visible_components()
+    assert len(vis) == 2
+    basis = model.basis[vis].reshape(2, -1).astype(np.float64)
+    truth = np.stack([lid.ravel(), corner.ravel()])
+    # The visible span is the two expressions': each true offset lies in it.
+    resid = truth - (truth @ basis.T) @ basis
+    assert np.linalg.norm(resid) < 1e-3 * np.linalg.norm(truth)
+    w = np.concatenate(list(model.capture_weights.values()))[:, vis]  # [M, 2]
+    top = w.max(0)
+    assert (top > 0).all() and (w.min(0) >= -1e-3 * top).all()  # observed range [0, top] up to noise
+    # The exported sliders (export.py) then run 0..1 over what was seen.
+    from t2bs.blendshapes.export import export_weights
+
+    ew = export_weights(model, np.concatenate(list(model.capture_weights.values())))[:, :2]
+    assert ew.max() == pytest.approx(1.0, abs=1e-6) and ew.min() >= -1e-3
 
 
 def test_fitting_a_training_frame_returns_its_weights(toy):
     neutral, _, caps, _ = toy
-    model = build_model(neutral, caps, components=100)
+    model = build_model(neutral, caps, components=100, remove_head_motion=False)
     vid = sorted(caps)[2]
     w = fit_geometry(model, caps[vid], prior=0.0)
     np.testing.assert_allclose(w, model.capture_weights[vid], atol=1e-5)
@@ -112,7 +165,7 @@ def test_semantic_names_follow_the_paper_prompts(toy):
     assert shape_name("closing the left eye") == "blink_left"
     assert shape_name("smiling") == "smile"
     neutral, targets, caps, _ = toy
-    model = build_model(neutral, caps, components=100)
+    model = build_model(neutral, caps, components=100, remove_head_motion=False)
     names, weights, sources = semantic_shapes(model, caps)
     assert len(names) == len(caps) == len(set(names))
     # Each named shape is its capture's peak frame expressed in the basis (exact here: full rank).
@@ -193,7 +246,9 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
     model = load_model(tmp_path / "blendshapes" / "model.npz")
     assert model.semantic_names == ["blink", "smile", "tongue_out"]
     rig = load_mesh(tmp_path / "blendshapes" / "model.glb")
-    assert list(rig.morph_targets) == model.names + model.semantic_names
+    visible = [model.names[k] for k in model.visible_components()]
+    assert 0 < len(visible) < model.num_components  # the head turns' rounding residue is not exported
+    assert list(rig.morph_targets) == visible + model.semantic_names
     assert (tmp_path / "blendshapes" / "done.json").exists()
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
                         fps=8.0, force=False)

@@ -49,7 +49,8 @@ def test_glb_round_trip_targets_animation(rig):
     model, mesh, path = rig
     back = load_mesh(path)
     names, offsets, scale = rig_targets(model)
-    assert list(back.morph_targets) == names == model.names + model.semantic_names
+    visible = model.visible_components()
+    assert list(back.morph_targets) == names == [model.names[k] for k in visible] + model.semantic_names
     assert "jaw_open" in names and "blink" in names
     np.testing.assert_allclose(back.vertices, model.neutral, atol=1e-6)
     # Exported weights (scaled targets) pose the same mesh as the basis weights, within -1..1.
@@ -57,7 +58,15 @@ def test_glb_round_trip_targets_animation(rig):
     ew = export_weights(model, w)
     assert np.abs(ew).max() <= 1 + 1e-6
     posed = back.vertices + np.einsum("tm,mnc->tnc", ew, np.stack(list(back.morph_targets.values())))
-    np.testing.assert_allclose(posed, model.vertices(w), atol=1e-4)
+    np.testing.assert_allclose(posed, model.vertices(np.where(model.visible, w, 0.0)), atol=1e-4)
+    # The components left out move no vertex by VISIBLE_FRACTION of the diagonal over the captures.
+    from t2bs.blendshapes.model import VISIBLE_FRACTION
+
+    hidden = ~model.visible
+    if hidden.any():
+        allw = np.concatenate(list(model.capture_weights.values()))
+        off = model.offsets(np.where(hidden, allw, 0.0)[:, None, :] * np.eye(model.num_components)[None][:, hidden])
+        assert np.linalg.norm(off, axis=-1).max() < VISIBLE_FRACTION * mesh.bbox_diagonal() * hidden.sum()
     import pygltflib
 
     gltf = pygltflib.GLTF2().load(str(path))
@@ -132,7 +141,7 @@ def test_three_js_loads_the_rig_in_headless_chromium(rig, tmp_path):
         server.shutdown()
         (JS / f".test-{tmp_path.name}.glb").unlink(missing_ok=True)
     assert result["ok"], result
-    names = model.names + model.semantic_names
+    names = [model.names[k] for k in model.visible_components()] + model.semantic_names
     (mesh,) = result["meshes"]
     assert mesh["morphTargetInfluences"] == len(names) == mesh["morphPositions"]
     assert mesh["targetNames"] == names and mesh["influencesAllZero"] and mesh["textured"]
@@ -151,7 +160,7 @@ def test_usd_export(rig, tmp_path):
     stage = Usd.Stage.Open(str(path))
     binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Character/Mesh"))
     names = binding.GetBlendShapesAttr().Get()
-    assert len(names) == len(model.names) + len(model.semantic_names)
+    assert len(names) == len(model.visible_components()) + len(model.semantic_names)
     shape = UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Character/Mesh/{names[0]}"))
     assert len(shape.GetOffsetsAttr().Get()) == model.num_vertices
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Skel/Anim"))

@@ -9,7 +9,7 @@ import trimesh
 from t2bs.eval.bench_vcdgs import full_vs_markdown, markdown, seen_vertices, summarise
 from t2bs.geometry.mesh import vertex_normals
 from t2bs.errors import UserError
-from t2bs.eval.metrics import geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
+from t2bs.eval.metrics import expression_metrics, geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
 
 
 def cube():
@@ -208,3 +208,59 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     assert seen == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None, {"seed": 1}]
     assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[3])["config"]["seed"] == 1
     assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[0])["config"]["time_budget_s"] == 0.0
+
+
+def _turn_plus_bump(frames: int = 6, bump_scale: float = 1.0):
+    """A sphere (diagonal ~2) turning about y and drifting, with a bump on a small patch of known size:
+    (rest [N, 3], vertices [T, N, 3], bump [T, N, 3] in the head's frame, rotations [T, 3, 3], translations [T, 3])."""
+    import roma
+    import torch
+
+    rest = np.asarray(trimesh.creation.icosphere(subdivisions=3).vertices, np.float64)
+    patch = rest[:, 2] > 0.9  # a cap of ~5 % of the vertices ("the eyelid")
+    s = np.linspace(0.0, 1.0, frames)
+    bump = np.zeros((frames, len(rest), 3))
+    bump[:, patch, 1] = -0.08 * bump_scale * s[:, None]  # the lid slides down, 4 % of the diagonal at the peak
+    rot = roma.rotvec_to_rotmat(torch.as_tensor(np.stack([np.zeros(frames), 0.3 * s, 0.1 * s], 1))).numpy()
+    trans = np.stack([0.05 * s, 0.02 * s, np.zeros(frames)], 1)
+    verts = np.einsum("tij,tnj->tni", rot, rest[None] + bump) + trans[:, None]
+    return rest, verts, bump, rot, trans
+
+
+def test_expression_metrics_take_the_head_motion_out():
+    rest, gt, bump, rot, trans = _turn_plus_bump()
+    diag = bbox = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    moving = np.linalg.norm(bump, axis=-1) > 0.005 * bbox
+    true_mean = float(np.linalg.norm(bump, axis=-1)[moving].mean() / diag)
+    # A perfect reconstruction: exact.
+    m = expression_metrics(gt, gt, rest)
+    assert m["expr_p2p"] == pytest.approx(0.0, abs=1e-9)
+    assert m["recovered"] == pytest.approx(1.0, abs=1e-9) and m["cosine"] == pytest.approx(1.0, abs=1e-9)
+    assert m["expr_rigid"] == pytest.approx(true_mean, rel=1e-9)
+    assert m["expr_fraction"] == pytest.approx(moving.mean())
+    # The rigid oracle (true head motion, neutral face): error = the bump itself, nothing recovered.
+    oracle = np.einsum("tij,nj->tni", rot, rest) + trans[:, None]
+    m = expression_metrics(oracle, gt, rest)
+    assert m["expr_p2p"] == pytest.approx(true_mean, rel=1e-9) and m["expr_ratio"] == pytest.approx(1.0, rel=1e-9)
+    assert m["recovered"] == pytest.approx(0.0, abs=1e-9)
+    # Half the bump, under a different (wrong) head motion: the head error does not count, the expression does.
+    _, half, _, _, _ = _turn_plus_bump(bump_scale=0.5)
+    off = half + np.array([0.03, 0.0, 0.0])  # a head-tracking error of 1.5 % of the diagonal
+    m = expression_metrics(off, gt, rest)
+    assert m["recovered"] == pytest.approx(0.5, abs=1e-6) and m["cosine"] == pytest.approx(1.0, abs=1e-6)
+    assert m["expr_p2p"] == pytest.approx(0.5 * true_mean, rel=1e-6)
+    assert m["expr_ratio"] == pytest.approx(0.5, rel=1e-6)
+    # p2p over the moving vertices, by contrast, is dominated by the head motion.
+    assert p2p(oracle, gt, mask=moving_mask(gt, rest)) < p2p(np.repeat(rest[None], len(gt), 0), gt, mask=moving_mask(gt, rest)) / 3
+    # A bump the other way: cosine -1.
+    m = expression_metrics(np.einsum("tij,tnj->tni", rot, rest[None] - bump) + trans[:, None], gt, rest)
+    assert m["cosine"] == pytest.approx(-1.0, abs=1e-6) and m["expr_ratio"] == pytest.approx(2.0, rel=1e-6)
+
+
+def test_expression_metrics_of_a_rigid_capture_are_undefined():
+    rest, _, _, rot, trans = _turn_plus_bump()
+    rigid = np.einsum("tij,nj->tni", rot, rest) + trans[:, None]
+    m = expression_metrics(rigid, rigid, rest)
+    assert m["expr_fraction"] == 0.0 and np.isnan(m["expr_ratio"])
+    with pytest.raises(ValueError):
+        expression_metrics(rigid[:, :5], rigid, rest)

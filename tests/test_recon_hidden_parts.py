@@ -8,8 +8,9 @@ import torch
 
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
-from t2bs.recon.hidden_parts import (GROUPS, Opening, apply_motion, cluster_motions, compare_views, find_opening,
-                                     group_parts, hidden_parts, pick_hidden_motions, robust_rigid_motion)
+from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
+from t2bs.recon.hidden_parts import (GROUPS, Opening, cluster_motions, compare_views, find_opening,
+                                     group_parts, hidden_parts, pick_hidden_motions)
 from t2bs.recon.tracks import rest_visibility
 
 FRAMES = 5

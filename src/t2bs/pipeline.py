@@ -130,6 +130,10 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
         row = {"video": recon_dir.name, "seconds": metrics.get("seconds"), "perceptual_loss": metrics.get("perceptual_loss")}
         geometry = metrics.get("geometry") or {}
         static = metrics.get("geometry_static") or {}
+        expression = metrics.get("expression") or {}
+        for key in ("expr_p2p", "expr_rigid", "expr_ratio", "recovered", "cosine"):
+            if key in expression:
+                row[key] = expression[key]
         for key in ("p2p_all", "p2p_moving", "nc"):
             if key in geometry:
                 row[key] = geometry[key]
@@ -170,12 +174,18 @@ def _write_markdown(project: Project, report: dict) -> None:
     lines += [f"- {stage}: {backend}" for stage, backend in report["backends"].items()]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
-    lines += ["", "## Videos", "", "| video | p2p moving (static) | NC (static) | seconds | contact sheet |", "|---|---|---|---|---|"]
+    lines += ["", "## Videos", "",
+              "Expression: each frame's head motion taken out, over the vertices whose true non-rigid motion exceeds "
+              "0.5 % of the diagonal; rigid = the neutral moved by the true head motion (eval/metrics.py).", "",
+              "| video | expression p2p (rigid) | recovered / cosine | p2p moving (static) | NC (static) | seconds | contact sheet |",
+              "|---|---|---|---|---|---|---|"]
     for v in report["videos"]:
+        expr = f"{v['expr_p2p']:.4f} ({v['expr_rigid']:.4f})" if v.get("expr_p2p") is not None else "-"
+        rec = f"{v['recovered']:.2f} / {v['cosine']:.2f}" if v.get("recovered") is not None else "-"
         p2p = f"{v['p2p_moving']:.4f} ({v['p2p_moving_static']:.4f})" if v.get("p2p_moving") is not None else "-"
         nc = f"{v['nc']:.4f} ({v['nc_static']:.4f})" if v.get("nc") is not None else "-"
         sheet = f"![{v['video']}]({v['contact_sheet']})" if v.get("contact_sheet") else "-"
-        lines.append(f"| {v['video']} | {p2p} | {nc} | {v.get('seconds') or '-'} | {sheet} |")
+        lines.append(f"| {v['video']} | {expr} | {rec} | {p2p} | {nc} | {v.get('seconds') or '-'} | {sheet} |")
     b = report["blendshapes"]
     lines += ["", "## Blendshape model", "", f"{b.get('components', 0)} shapes in blendshapes/model.glb."]
     if "explained_variance_first10" in b:

@@ -94,8 +94,9 @@ def blendshapes_command(
 ) -> None:
     """PCA blendshape model of every captured frame -> DIR/blendshapes/model.npz + model.glb (paper §3.3)."""
     from t2bs.blendshapes.export import export_glb, export_usd
-    from t2bs.blendshapes.model import build_model, save_model
+    from t2bs.blendshapes.model import VISIBLE_FRACTION, build_model, save_model
     from t2bs.blendshapes.semantic import semantic_shapes
+    from t2bs.geometry.rigid import remove_motion
     from t2bs.project import Project, content_key, is_done, mark_done, write_json
 
     project = Project(project_dir)
@@ -111,8 +112,13 @@ def blendshapes_command(
         return
     t0 = time.time()
     model = build_model(character.vertices, captures, components=components, source=used)
-    if semantic:
-        model.semantic_names, model.semantic_weights, model.semantic_sources = semantic_shapes(model, captures, expressions)
+    if not len(model.visible_components()):
+        raise UserError(f"{project_dir}: the captures hold no expression: with each frame's head motion taken out, "
+                        f"no component moves a vertex by {100 * VISIBLE_FRACTION:.2f} % of the diagonal")
+    if semantic:  # named shapes from each prompt's non-rigid peak: the captures as seen from the head
+        expression_frames = {v: remove_motion(*model.head_tracks[v], c).astype(np.float32) if v in model.head_tracks else c
+                             for v, c in captures.items()}
+        model.semantic_names, model.semantic_weights, model.semantic_sources = semantic_shapes(model, expression_frames, expressions)
     if animation is not None and animation not in captures:
         raise UserError(f"--animation {animation!r}: no such capture; have {', '.join(sorted(captures))}")
     replay = animation or max(captures, key=lambda v: float(np.abs(captures[v] - character.vertices).max()))
@@ -127,7 +133,8 @@ def blendshapes_command(
     cum = np.cumsum(ev)
     stats = {
         "source": used, "captures": len(captures), "frames": model.meta["frames"], "rank": model.meta["rank"],
-        "components": model.num_components, "explained_variance": ev, "cumulative": cum,
+        "components": model.num_components, "visible_components": int(len(model.visible_components())),
+        "explained_variance": ev, "cumulative": cum,
         "semantic": dict(zip(model.semantic_names, model.semantic_sources)), "animation": replay,
         "seconds": round(time.time() - t0, 2),
     }
@@ -137,7 +144,7 @@ def blendshapes_command(
                          outputs=["blendshapes/model.npz", "blendshapes/model.glb"], components=model.num_components)
     at = {k: float(cum[k - 1]) for k in (1, 5, 10, 20, 50, 100) if k < len(cum)}
     at[len(cum)] = float(cum[-1])
-    print(f"blendshapes: {model.num_components} shapes from {model.meta['frames']} frames of {len(captures)} {used} captures "
+    print(f"blendshapes: {model.num_components} shapes ({len(model.visible_components())} visible, exported) from {model.meta['frames']} frames of {len(captures)} {used} captures "
           f"(rank {model.meta['rank']}); explained variance "
           + ", ".join(f"{k}: {v:.4f}" for k, v in at.items())
           + (f"; named: {', '.join(model.semantic_names)}" if model.semantic_names else ""))

@@ -3,9 +3,11 @@
 glTF (``model.glb``): the neutral textured character (``t2bs.geometry.io.save_mesh``), one morph
 target per PCA component then one per named shape, names in ``mesh.extras.targetNames`` (what
 three.js and Blender read), default weights 0 (= the neutral pose, see model.py), and an
-animation that replays one capture. The PCA targets are stored *scaled*: target_k = basis_k *
-range_k with range_k = the largest |weight| of component k over the captures, so every captured
-frame lies within weights -1..1 of the sliders (an orthonormal basis vector has unit norm over all
+animation that replays one capture (its expression: the head track is kept in model.npz). Only the
+visible PCA components are exported (model.py). The PCA targets are stored *scaled*: target_k = basis_k *
+range_k with range_k = the largest |weight| of component k over the captures, which build_model made
+its positive extreme, so weight 1 is the most the captures showed and every captured frame lies within
+weights -1..1 of the sliders (an orthonormal basis vector has unit norm over all
 3N coordinates, which would put useful weights in the tens or hundreds). Named shapes are stored
 at full strength (weight 1 = the peak of the expression).
 
@@ -37,18 +39,20 @@ def target_ranges(model: BlendshapeModel) -> np.ndarray:
 
 
 def rig_targets(model: BlendshapeModel) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(names [M], offsets [M, N, 3], per-target scale [K] of the PCA part) as exported."""
-    rng = target_ranges(model)
-    pcs = model.basis.astype(np.float64) * rng[:, None, None]
+    """(names [M], offsets [M, N, 3], per-target scale [K'] of the PCA part) as exported: the visible PCA
+    components (model.visible_components(); the others move no vertex by a pixel) then the named shapes."""
+    keep = model.visible_components()
+    rng = target_ranges(model)[keep]
+    pcs = model.basis[keep].astype(np.float64) * rng[:, None, None]
     sem = model.semantic_offsets().astype(np.float64)
-    names = list(model.names) + list(model.semantic_names)
+    names = [model.names[k] for k in keep] + list(model.semantic_names)
     return names, np.concatenate([pcs, sem]).astype(np.float32), rng
 
 
 def export_weights(model: BlendshapeModel, weights: np.ndarray) -> np.ndarray:
-    """Basis weights [T, K] -> exported target weights [T, M] (named shapes at 0)."""
-    rng = target_ranges(model)
-    w = np.asarray(weights, np.float64) / rng
+    """Basis weights [T, K] -> exported target weights [T, M] (visible PCA components, named shapes at 0)."""
+    keep = model.visible_components()
+    w = np.asarray(weights, np.float64)[:, keep] / target_ranges(model)[keep]
     return np.concatenate([w, np.zeros((len(w), len(model.semantic_names)))], 1).astype(np.float32)
 
 

@@ -12,6 +12,12 @@ with one more component.
 
 The basis is orthonormal over flattened vertices (``basis.reshape(K, -1)`` has orthonormal
 rows), so the geometric fit of a target is a projection (closed form, see ``fit.py``).
+
+Expressions, not head motion: a capture moves the whole head and deforms the face. Before the PCA each frame's
+dominant rigid motion (geometry.rigid.robust_rigid_motion from the neutral) is taken out and kept as the capture's
+head track (``head_tracks``), so no component is a head turn. Each component is oriented so that its observed
+extreme is positive (exported at weight 1, see export.py), and flagged ``visible`` when it moves some vertex by at
+least ``VISIBLE_FRACTION`` of the bounding-box diagonal there; the glTF and the viewer list only those.
 """
 
 from __future__ import annotations
@@ -24,7 +30,11 @@ import numpy as np
 
 from t2bs.errors import UserError
 
-MODEL_VERSION = 1
+MODEL_VERSION = 2
+# A component is visible when, at its observed extreme, some vertex moves by this fraction of the bounding-box
+# diagonal: 0.25 % is about one pixel of a head filling a 512 px render (the paper's renders). Chosen from that
+# pixel size, not from any asset.
+VISIBLE_FRACTION = 0.0025
 
 
 @dataclass
@@ -39,6 +49,9 @@ class BlendshapeModel:
     semantic_weights: np.ndarray | None = None  # [S, K] each named shape expressed in the basis
     semantic_sources: list[str] = field(default_factory=list)  # [S] "video_id:frame" each named shape came from
     meta: dict = field(default_factory=dict)  # source, components asked, rank, frames, tolerance
+    visible: np.ndarray | None = None  # [K] bool: the component moves some vertex by >= VISIBLE_FRACTION x diagonal
+    head_tracks: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # video_id -> (rotations
+    #   [T, 3, 3], translations [T, 3]): the head motion taken out of each capture (frame = R (neutral + offsets) + t)
 
     @property
     def num_components(self) -> int:
@@ -69,6 +82,21 @@ class BlendshapeModel:
         d = (v - self.neutral.astype(np.float64)).reshape(*v.shape[:-2], -1)
         return d @ self.flat_basis().T
 
+    def capture_frames(self, video_id: str) -> np.ndarray:
+        """[T, N, 3] a capture's frames as the model holds them: its weights posed, then its head track applied."""
+        verts = self.vertices(self.capture_weights[video_id])
+        if video_id not in self.head_tracks:
+            return verts
+        from t2bs.geometry.rigid import apply_rigid_frames
+
+        return apply_rigid_frames(*self.head_tracks[video_id], verts).astype(np.float32)
+
+    def visible_components(self) -> np.ndarray:
+        """[K'] indices of the components that move something visible (all of them for a model without flags)."""
+        if self.visible is None:
+            return np.arange(self.num_components)
+        return np.flatnonzero(self.visible)
+
     def semantic_offsets(self) -> np.ndarray:
         """[S, N, 3] offsets of the named shapes (their projection onto the basis)."""
         if self.semantic_weights is None or not self.semantic_names:
@@ -82,8 +110,12 @@ def build_model(
     components: int = 100,
     rank_tol: float | None = None,
     source: str = "",
+    remove_head_motion: bool = True,
 ) -> BlendshapeModel:
     """PCA over every frame of every capture (``video_id -> [T, N, 3]``) as offsets from ``neutral``.
+
+    ``remove_head_motion``: each frame's dominant rigid motion is taken out first (kept in ``head_tracks``), so the
+    components are expressions; False keeps the frames as they are (head motion becomes components).
 
     The number of components is min(components, numerical rank of the offsets). The rank counts
     singular values above the rounding noise of float32 vertex positions: noise of size
@@ -110,6 +142,16 @@ def build_model(
             raise UserError(f"capture {vid}: has no frames")
         if not np.isfinite(c).all():
             raise UserError(f"capture {vid}: vertices contain NaN or infinite values")
+    head_tracks = {}
+    if remove_head_motion:
+        from t2bs.geometry.rigid import nonrigid_displacements
+
+        base = neutral.astype(np.float64)
+        moved = {}
+        for v in ids:
+            disp, rot, trans = nonrigid_displacements(base, captures[v])
+            moved[v], head_tracks[v] = (base + disp).astype(np.float32), (rot, trans)
+        captures = moved
     lengths = [int(np.asarray(captures[v]).shape[0]) for v in ids]
     # [M, 3N] float32 storage (a character x 60 videos x 49 frames fits); products in float64.
     data = np.concatenate(
@@ -118,7 +160,8 @@ def build_model(
     s, vt = _svd_rows(data)  # [R], [R, 3N]
     total = float(np.einsum("ij,ij->", data, data, dtype=np.float64))
     if total <= 0 or s.size == 0 or s[0] <= 0:
-        raise UserError("captures do not move: every frame equals the neutral mesh, nothing to model")
+        raise UserError("captures do not move: every frame equals the neutral mesh, nothing to model"
+                        + (" (after taking each frame's head motion out)" if remove_head_motion else ""))
     if rank_tol is None:
         scale = max(float(np.abs(neutral).max()), max(float(np.abs(np.asarray(captures[v])).max()) for v in ids))
         noise = np.finfo(np.float32).eps * scale * (np.sqrt(data.shape[0]) + np.sqrt(data.shape[1]))
@@ -128,11 +171,16 @@ def build_model(
     rank = int((s > s[0] * tol).sum())
     k = min(components, rank)
     s, vt = s[:k], vt[:k]
-    # Sign convention (SVD signs are arbitrary): the largest-magnitude entry of each shape is positive,
-    # so re-running on the same data gives the same file.
-    flip = np.sign(vt[np.arange(k), np.abs(vt).argmax(1)])
-    vt = vt * flip[:, None]
+    # Orientation (SVD signs are arbitrary): the observed weight of largest magnitude is positive, so that
+    # 0 -> 1 on an exported slider moves into the range the captures saw (not away from it).
     weights = data.astype(np.float64) @ vt.T  # [M, K]
+    extreme = weights[np.abs(weights).argmax(0), np.arange(k)]  # [K]
+    flip = np.where(extreme < 0, -1.0, 1.0)
+    vt, weights = vt * flip[:, None], weights * flip[None]
+    # Visible: the largest vertex offset of the component at its observed extreme.
+    diag = float(np.linalg.norm(neutral.max(0) - neutral.min(0)))
+    peak = np.linalg.norm(vt.reshape(k, n, 3), axis=-1).max(1) * np.abs(weights).max(0)  # [K]
+    visible = peak >= VISIBLE_FRACTION * diag
     split = np.split(weights, np.cumsum(lengths)[:-1])
     return BlendshapeModel(
         neutral=neutral,
@@ -142,7 +190,10 @@ def build_model(
         explained_variance=(s**2 / total).astype(np.float64),
         capture_weights={v: w.astype(np.float32) for v, w in zip(ids, split)},
         meta={"source": source, "components_requested": int(components), "rank": rank, "frames": int(sum(lengths)),
-              "captures": len(ids), "rank_tol": float(tol), "centred": False},
+              "captures": len(ids), "rank_tol": float(tol), "centred": False, "head_motion_removed": remove_head_motion,
+              "visible_fraction": VISIBLE_FRACTION, "visible": int(visible.sum())},
+        visible=visible,
+        head_tracks=head_tracks,
     )
 
 
@@ -215,8 +266,14 @@ def save_model(model: BlendshapeModel, path: str | os.PathLike) -> Path:
         "semantic_sources": np.array(model.semantic_sources, dtype=str),
         "meta": np.array(json.dumps(to_jsonable(model.meta))),
     }
+    if model.visible is not None:
+        arrays["visible"] = np.asarray(model.visible, bool)
     for i, vid in enumerate(ids):
         arrays[f"capture_weights_{i:04d}"] = np.asarray(model.capture_weights[vid], np.float32)
+        if vid in model.head_tracks:
+            rot, trans = model.head_tracks[vid]
+            arrays[f"head_rotations_{i:04d}"] = np.asarray(rot, np.float32)
+            arrays[f"head_translations_{i:04d}"] = np.asarray(trans, np.float32)
     return write_npz(path, **arrays)
 
 
@@ -252,4 +309,7 @@ def load_model(path: str | os.PathLike) -> BlendshapeModel:
         semantic_weights=None if sem_w is None or sem_w.shape[0] == 0 else sem_w.astype(np.float32),
         semantic_sources=[str(s) for s in data.get("semantic_sources", np.array([], dtype=str))],
         meta=json.loads(str(data["meta"])) if "meta" in data else {},
+        visible=data["visible"].astype(bool) if "visible" in data and data["visible"].shape == (basis.shape[0],) else None,
+        head_tracks={vid: (data[f"head_rotations_{i:04d}"], data[f"head_translations_{i:04d}"])
+                     for i, vid in enumerate(ids) if f"head_rotations_{i:04d}" in data},
     )

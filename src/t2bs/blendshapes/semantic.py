@@ -70,8 +70,12 @@ def semantic_shapes(model: BlendshapeModel, captures: dict[str, np.ndarray],
 
     ``captures``: video_id -> [T, N, 3]; ``expressions``: video_id -> prompt text (default: from the
     id). Captures of the same prompt (samples) share one name; the peak over all of them is kept.
-    Two prompts mapping to the same name are numbered (smile, smile_2).
+    Two prompts mapping to the same name are numbered (smile, smile_2). A prompt whose peak moves no vertex by
+    model.VISIBLE_FRACTION of the diagonal gets no shape (with the head motion taken out of the captures, as the
+    blendshapes stage does, "shaking the head" is such a prompt).
     """
+    from t2bs.blendshapes.model import VISIBLE_FRACTION
+
     expressions = expressions or {}
     neutral = model.neutral.astype(np.float64)
     best: dict[str, tuple[float, str, int]] = {}  # prompt -> (peak displacement, video id, frame)
@@ -83,8 +87,11 @@ def semantic_shapes(model: BlendshapeModel, captures: dict[str, np.ndarray],
         if prompt not in best or disp[t] > best[prompt][0]:
             best[prompt] = (float(disp[t]), vid, t)
     names, weights, sources, used = [], [], [], set(model.names)
+    diag = float(np.linalg.norm(neutral.max(0) - neutral.min(0)))
     for prompt in sorted(best):
         _, vid, t = best[prompt]
+        if np.linalg.norm(np.asarray(captures[vid][t], np.float64) - neutral, axis=-1).max() < VISIBLE_FRACTION * diag:
+            continue
         name = base = shape_name(prompt)
         i = 2
         while name in used:

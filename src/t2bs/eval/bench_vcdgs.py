@@ -5,24 +5,28 @@ morph targets (the ground truth), renders the 15-view grid (t2bs.video.synth) wi
 simulated generator defects, and VCDGS reconstructs it with every requested method. Two orbit
 views (``--holdout``, default 4 and 10: azimuth -25.7 and +25.7 deg) are never trained on.
 
-Columns: p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
+Columns, expression first (eval.metrics.expression_metrics): each frame's head motion taken out of the truth and
+out of the reconstruction, over the vertices whose true non-rigid motion exceeds 0.5 % of the diagonal: expr_p2p,
+expr/rigid (its ratio to the rigid oracle: 1 = no better than perfect head tracking with a neutral face),
+recovered (|recovered motion| / |true motion| there) and cosine (its direction). Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
 and over those whose true displacement from the rest pose exceeds 0.5 % of the diagonal), p2p_seen
 (the moving pairs of vertices that some training view sees in some true frame, depth-tested at
 1024 px; seen_fraction: their share. The rest, such as a mouth's back teeth, change no pixel of any
 input, so their error measures a method's prior for hidden geometry, not what it recovered), NC
 (mean 1 - cos of vertex normals), PSNR / SSIM of the reconstructed mesh rendered at the held-out
 views against the true mesh rendered there (same renderer and shading, no defects), and wall
-seconds per reconstruction. The "static" row is the neutral mesh for every frame.
+seconds per reconstruction. Baselines: "static" is the neutral mesh for every frame, "rigid" the neutral moved by the
+true head motion (its robust rigid fit).
 
-Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, p2p_all,
-p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
+Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, expr_p2p,
+expr_rigid, expr_ratio, recovered, cosine, expr_fraction, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
 (also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran). The summary holds the mean per (defects, method), the full / static ratio per case,
 and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
-claim as mean p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
+claim as mean expr_p2p / p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
 table). Resume: a re-run with the same ``--json`` file and the same settings
 (grid size, frames, held-out views, and the resolved VCDGS configuration, so a changed default
 counts as a change) keeps the rows already there and runs only the missing (asset, prompt, defects,
-method) combinations; ``--fresh`` starts over. Rows kept from a file written before p2p_seen existed
+method) combinations; ``--fresh`` starts over. Rows kept from a file written before a column existed
 show it as "-" and are left out of its means.
 """
 
@@ -41,7 +45,8 @@ from t2bs.recon.config import parse_options, preset
 
 SHARED_ASSETS = Path(os.environ.get("T2BS_SHARED_ASSETS", "/work/shared/assets"))
 DEFAULT_PROMPTS = ("blinking", "opening the mouth extremely wide", "smiling", "tongue sticking out the mouth")
-ALL_METHODS = ("full", "no_view", "no_refine", "no_lbs", "no_global", "static")
+ALL_METHODS = ("full", "no_view", "no_refine", "no_lbs", "no_global", "static", "rigid")
+BASELINES = ("static", "rigid")  # no reconstruction: the neutral, and the neutral moved by the true head motion
 
 
 def load_asset(spec: str):
@@ -92,7 +97,8 @@ def case_config_overrides(preset_name: str, iterations: int, options: dict | Non
 def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], preset_name: str, size: int,
              frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
              options: dict | None = None) -> list[dict]:
-    from t2bs.eval.metrics import geometry_metrics, psnr, ssim
+    from t2bs.eval.metrics import expression_metrics, geometry_metrics, psnr, ssim
+    from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
@@ -112,6 +118,9 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
             if method == "static":
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
+            elif method == "rigid":  # perfect head tracking, neutral face
+                verts = apply_motion(*robust_rigid_motion(mesh.vertices, gt), mesh.vertices).astype(np.float32)
+                seconds = 0.0
             else:
                 over = {**case_config_overrides(preset_name, iterations, options), "method": method,
                         "holdout_views": tuple(holdout)}
@@ -119,20 +128,30 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
+            expr = expression_metrics(verts, gt, mesh.vertices)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
             rows.append({"asset": name, "prompt": prompt, "defects": defects, "method": method,
                          "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "p2p_seen": geo["p2p_seen"],
-                         "seen_fraction": geo["seen_fraction"], "nc": geo["nc"],
+                         "seen_fraction": geo["seen_fraction"], "nc": geo["nc"], **expr,
                          "psnr": psnr(imgs, gt_imgs), "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
                          "seconds": round(seconds, 2), **({"hidden_pick": pick} if pick else {})})
             print(_row_line(rows[-1]), flush=True)
     return rows
 
 
+def _fmt(r: dict, key: str, spec: str) -> str:
+    """A cell, or "-" for a row kept from a file older than the column."""
+    return format(r[key], spec) if key in r else "-"
+
+
 def _cells(r: dict) -> list[str]:
-    seen = f"{r['p2p_seen']:.5f}" if "p2p_seen" in r else "-"  # rows kept from a file older than the column
-    return [r["asset"], r["prompt"], r["defects"], r["method"], f"{r['p2p_all']:.5f}", f"{r['p2p_moving']:.5f}", seen,
-            f"{r['nc']:.5f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['seconds']:.1f}"]
+    return [r["asset"], r["prompt"], r["defects"], r["method"], _fmt(r, "expr_p2p", ".5f"), _fmt(r, "expr_ratio", ".3f"),
+            _fmt(r, "recovered", ".2f"), _fmt(r, "cosine", ".2f"), f"{r['p2p_moving']:.5f}", _fmt(r, "p2p_seen", ".5f"),
+            f"{r['p2p_all']:.5f}", f"{r['nc']:.5f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['seconds']:.1f}"]
+
+
+HEADER = ("asset", "prompt", "defects", "method", "expr_p2p", "expr/rigid", "recovered", "cosine", "p2p_moving",
+          "p2p_seen", "p2p_all", "NC", "PSNR", "SSIM", "seconds")
 
 
 def _row_line(r: dict) -> str:
@@ -141,20 +160,24 @@ def _row_line(r: dict) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    head = "| asset | prompt | defects | method | p2p_all | p2p_moving | p2p_seen | NC | PSNR | SSIM | seconds |\n" + "|---" * 11 + "|\n"
+    head = "| " + " | ".join(HEADER) + " |\n" + "|---" * len(HEADER) + "|\n"
     return head + "\n".join("| " + " | ".join(_cells(r)) + " |" for r in rows)
+
+
+METRIC_KEYS = ("expr_p2p", "expr_ratio", "recovered", "cosine", "p2p_all", "p2p_moving", "p2p_seen", "nc", "psnr",
+               "ssim", "seconds")
 
 
 def summarise(rows: list[dict]) -> dict:
     """Mean per (defects, method), the full/static p2p_moving (and p2p_seen) ratio per case, and full against each
-    ablation over the cases both ran (``full_vs``). A mean of p2p_seen is given only when every row it averages has
-    the column."""
+    ablation over the cases both ran (``full_vs``). A mean of a column is given only when every row it averages has
+    it. The expression columns' ratio to the rigid oracle is ``expr_ratio`` itself (every row has it)."""
     out: dict = {"mean": {}, "ratio_full_over_static": {}}
     for d in sorted({r["defects"] for r in rows}):
         for m in [m for m in ALL_METHODS if any(r["method"] == m for r in rows)]:
             sel = [r for r in rows if r["defects"] == d and r["method"] == m]
             if sel:
-                keys = [k for k in ("p2p_all", "p2p_moving", "p2p_seen", "nc", "psnr", "ssim", "seconds") if all(k in r for r in sel)]
+                keys = [k for k in METRIC_KEYS if all(k in r for r in sel)]
                 out["mean"][f"{d}/{m}"] = {k: float(np.mean([r[k] for r in sel])) for k in keys}
     for r in rows:
         if r["method"] != "full":
@@ -176,14 +199,14 @@ def full_vs_ablations(rows: list[dict]) -> dict:
     out: dict = {}
     for d in sorted({r["defects"] for r in rows}):
         for m in ALL_METHODS:
-            if m in ("full", "static"):
+            if m == "full" or m in BASELINES:
                 continue
             pairs = [(by_key[(a, p, d, "full")], r) for (a, p, dd, mm), r in by_key.items()
                      if dd == d and mm == m and (a, p, d, "full") in by_key]
             if not pairs:
                 continue
             entry: dict = {"cases": len(pairs)}
-            for k in ("p2p_moving", "p2p_seen", "nc"):
+            for k in ("expr_p2p", "p2p_moving", "p2p_seen", "nc"):
                 if all(k in f and k in r for f, r in pairs):
                     entry[k] = {"full": float(np.mean([f[k] for f, _ in pairs])),
                                 "ablation": float(np.mean([r[k] for _, r in pairs])),
@@ -198,7 +221,7 @@ def full_vs_markdown(full_vs: dict) -> str:
              "|---" * 8 + "|"]
     for key, e in full_vs.items():
         d, m = key.split("/")
-        for k in ("p2p_moving", "p2p_seen", "nc"):
+        for k in ("expr_p2p", "p2p_moving", "p2p_seen", "nc"):
             if k in e:
                 v = e[k]
                 lines.append(f"| {d} | {m} | {k} | {e['cases']} | {v['full']:.5f} | {v['ablation']:.5f} | "
@@ -272,7 +295,7 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
     loaded = [load_asset(a) for a in assets]
     settings = bench_settings(preset_name, size, frames, holdout, iterations, options)
     done = previous_rows(json_path, settings) if resume else {}
-    print("     asset | prompt                           | defect | method    | p2p_all | p2p_mov | p2p_seen | NC      | PSNR  | SSIM   | s", flush=True)
+    print(f"{'asset':>10} | {'prompt':<32} | defect | method    | " + " | ".join(HEADER[4:]), flush=True)
     cases = [(name, mesh, p, d) for name, mesh in loaded for d in defects for p in prompts]
     todo = [[m for m in methods if (name, p, d, m) not in done] for name, _, p, d in cases]
     for (name, _, p, d), left in zip(cases, todo):
@@ -304,7 +327,7 @@ def bench_vcdgs_command(
     asset: list[str] = typer.Option(None, "--asset", help="Asset: turtle, facecap, a glb/vrm path with morph targets, or procedural:PROMPT (repeat). Default: turtle, facecap, procedural fox."),
     prompts: str = typer.Option(",".join(DEFAULT_PROMPTS), help="Comma-separated expression prompts."),
     defects: str = typer.Option("clean", help="Comma-separated defect presets: clean, mild, paper."),
-    methods: str = typer.Option("full,static", help=f"Comma-separated: {', '.join(ALL_METHODS)} (or 'all')."),
+    methods: str = typer.Option("full,static,rigid", help=f"Comma-separated: {', '.join(ALL_METHODS)} (or 'all')."),
     preset_name: str = typer.Option("quick", "--preset", help="VCDGS preset: quick | paper."),
     size: int = typer.Option(128, help="Grid frame size in pixels."),
     frames: int = typer.Option(16, help="Frames per grid."),

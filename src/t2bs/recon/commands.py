@@ -38,7 +38,7 @@ def list_videos(project: Project, videos: list[str] | None) -> list[Path]:
 
 
 def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
-    """metrics.json: losses, time, which perceptual loss ran; geometry errors when the grid has GT."""
+    """metrics.json: losses, time, which perceptual loss ran; expression and geometry errors when the grid has GT."""
     from t2bs.recon.vcdgs import evaluate_image_loss
 
     m = {"method": cfg.method, "seconds": round(result.seconds, 2), "perceptual_loss": result.loss_kind,
@@ -56,9 +56,12 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "huber_static": evaluate_image_loss(result.model, result.data, cfg, deformed=False),
          "huber_recon": evaluate_image_loss(result.model, result.data, cfg, deformed=True)}
     if grid.gt_vertices is not None:
-        from t2bs.eval.metrics import geometry_metrics
+        from t2bs.eval.metrics import expression_metrics, geometry_metrics
 
         static = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
+        # The expression with each frame's head motion taken out (expr_rigid: the rigid oracle's error, a perfect
+        # head tracker with a neutral face); then p2p over everything that moves, head motion included.
+        m["expression"] = expression_metrics(result.vertices, grid.gt_vertices, mesh.vertices)
         m["geometry"] = geometry_metrics(result.vertices, grid.gt_vertices, mesh.vertices, mesh.faces)
         m["geometry_static"] = geometry_metrics(static, grid.gt_vertices, mesh.vertices, mesh.faces)
     return m

@@ -120,7 +120,7 @@ class VCDGSConfig:
     hidden_pick_min_vertices: int = 20  # smaller hidden parts keep their own motion
     hidden_pick_closed_rigid: bool = False  # where nothing opens (no render can choose), the hidden parts take the seen
     #   surface's robust rigid motion (the head's) instead of their own, a blend of the control points around them,
-    #   which a smile drags along (hidden_parts.robust_rigid_motion; opt-in until the benchmark tables are re-run)
+    #   which a smile drags along (geometry.rigid.robust_rigid_motion; opt-in until the benchmark tables are re-run)
     # --- ablations ---
     method: str = "full"  # full | no_view | no_refine | no_lbs | no_global
     # --- misc ---

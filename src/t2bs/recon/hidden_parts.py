@@ -36,6 +36,7 @@ import numpy as np
 
 from t2bs.geometry.camera import Camera
 from t2bs.geometry.mesh import Mesh, welded_components
+from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
 
 
 @dataclass
@@ -107,30 +108,6 @@ def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, cl
         rots.append(r.numpy())
         trans.append(t.numpy())
     return (np.stack(rots), np.stack(trans)) if rots else none
-
-
-def robust_rigid_motion(rest: np.ndarray, vertices: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """The dominant rigid motion of points ``rest`` [n, 3] moving to ``vertices`` [T, n, 3] -> (rotations [T, 3, 3],
-    translations [T, 3]): a least-squares fit (Kabsch) refitted ``iterations`` - 1 times with Cauchy weights on its
-    residuals (scale: their median per frame), so points that deform (smiling lips, cheeks) drop out and the
-    motion most of them share (the head's) remains. One plain fit would be pulled towards the deforming points."""
-    import roma
-    import torch
-
-    x = torch.as_tensor(np.asarray(rest), dtype=torch.float64).expand(len(vertices), -1, -1)
-    y = torch.as_tensor(np.asarray(vertices), dtype=torch.float64)
-    w = torch.ones(y.shape[:2], dtype=torch.float64)
-    for _ in range(max(int(iterations), 1)):
-        r, t = roma.rigid_points_registration(x, y, weights=w)
-        residual = (x @ r.transpose(-1, -2) + t[:, None] - y).norm(dim=-1)  # [T, n]
-        scale = residual.median(dim=1, keepdim=True).values.clamp_min(1e-12)
-        w = 1.0 / (1.0 + (residual / scale) ** 2)
-    return r.numpy(), t.numpy()
-
-
-def apply_motion(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """rotations [T, 3, 3], translations [T, 3], rest points [n, 3] -> [T, n, 3]."""
-    return np.einsum("tij,nj->tni", rotations, points) + translations[:, None]
 
 
 def compare_views(cameras: list[Camera], canonical: int, candidates: list[int], count: int = 5,

@@ -138,14 +138,16 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
         for name, off in zip(sem_names, sem_off):
             shapes.append(Shape(str(name), "semantic", np.asarray(off, np.float32), 0.0, 1.0))
     allw = np.concatenate(list(model.capture_weights.values())) if model.capture_weights else None  # [M, K]
-    for k, name in enumerate(model.names):
+    for k in model.visible_components():  # the components that move something visible (model.py)
+        name = model.names[k]
         r = _pca_range(model.basis[k], None if allw is None or allw.shape[1] != model.num_components else allw[:, k], diag)
         shapes.append(Shape(str(name), "pca", model.basis[k].astype(np.float32), -r, r))
     names = [s.name for s in shapes]
     if len(set(names)) != len(names):
         dup = sorted({x for x in names if names.count(x) > 1})
         raise UserError(f"{path}: blendshape names are not unique ({', '.join(dup)})")
-    what = f"{model.num_components} PCA components, {len([s for s in shapes if s.group == 'semantic'])} named shapes"
+    what = (f"{len(model.visible_components())} of {model.num_components} PCA components (the visible ones), "
+            f"{len([s for s in shapes if s.group == 'semantic'])} named shapes")
     return model.neutral.astype(np.float32), shapes, what
 
 
