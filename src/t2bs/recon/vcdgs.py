@@ -180,7 +180,7 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
             data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
             data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
     cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
-                               seed=cfg.seed, min_per_part=cfg.min_part_control_points)
+                               seed=cfg.seed, min_per_part=cfg.min_part_control_points, power=cfg.skin_power)
     model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
                        data.views, data.frames, data.canonical_view, cfg, gs.faces, gs.face_colors, gs.face_log_scale)
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
@@ -347,6 +347,8 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         groups["global"] = (list(model.global_se3.parameters()), cfg.lr_global)
     if model.refine is not None:
         groups["refine"] = (list(model.refine.parameters()), cfg.lr_refine)
+    if model.table is not None:
+        groups["table"] = (list(model.table.parameters()), cfg.lr_table)
     opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
     warm = cfg.global_iters if model.global_se3 is not None else 0
     warm = min(warm, cfg.iterations - 1) if cfg.iterations > 1 else 0
@@ -531,3 +533,30 @@ def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfi
     return verts, report.summary()
 
 
+
+
+def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
+    """The trained model of a finished reconstruction (``recon/<video>/state.pt``) -> (model on the CPU, config).
+
+    Loaded with ``weights_only=True``: a state file holds tensors and plain values, so nothing in a project folder
+    is executed. UserError when the file is missing or not such a state."""
+    from t2bs.errors import UserError
+
+    state_path = Path(state_path)
+    if not state_path.exists():
+        raise UserError(f"{state_path}: no trained model (run `t2bs reconstruct` first)")
+    try:
+        state = torch.load(state_path, map_location="cpu", weights_only=True)
+        sd, raw = state["model"], dict(state["config"])
+        cfg = VCDGSConfig(**{**raw, "holdout_views": tuple(raw.get("holdout_views", ()))})
+        faces = sd.get("faces")
+        model = VCDGSModel(sd["means"], sd["quats"], sd["log_scales"], sd["colors"], sd["cp"], sd["neighbours"],
+                           sd["weights"], int(state["views"]), int(state["frames"]), int(state["canonical_view"]), cfg,
+                           faces, sd.get("face_colors"), sd.get("face_log_scale"))
+        model.register_buffer("cp_neighbours", sd["cp_neighbours"])
+        model.load_state_dict(sd)
+    except UserError:
+        raise
+    except Exception as exc:  # a truncated file, another format, missing keys
+        raise UserError(f"{state_path}: not a t2bs reconstruction state ({type(exc).__name__}: {exc})") from None
+    return model.eval(), cfg
