@@ -157,3 +157,107 @@ def test_usd_export(rig, tmp_path):
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Skel/Anim"))
     assert len(anim.GetBlendShapeWeightsAttr().GetTimeSamples()) == len(model.capture_weights["blinking-s0"])
     assert pxr is not None
+
+
+# ------------------------------------------------------------------- what consumers showed (issue 38)
+
+
+def _raw_accessor(path, index):
+    import pygltflib
+
+    from t2bs.geometry.io import _read_accessor
+
+    gltf = pygltflib.GLTF2().load(str(path))
+    return gltf, _read_accessor(gltf, [gltf.binary_blob()], index)
+
+
+def test_color_0_is_linear_and_reads_back_as_display_colours(tmp_path):
+    from t2bs.geometry.io import load_mesh, save_mesh
+    from t2bs.geometry.mesh import Mesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    f = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+    srgb = np.array([[0.5, 0.5, 0.5], [1.0, 0.0, 0.02], [0.8, 0.6, 0.2], [0.04045, 0.2, 0.9]], np.float32)
+    path = save_mesh(Mesh(v, f, vertex_colors=srgb), tmp_path / "c.glb")
+    gltf, _ = _raw_accessor(path, 0)
+    raw = _raw_accessor(path, gltf.meshes[0].primitives[0].attributes.COLOR_0)[1]
+    # sRGB 0.5 is linear 0.2140 (IEC 61966-2-1); 0.04045 is the curve's knee, 0.04045 / 12.92.
+    np.testing.assert_allclose(raw[0, :3], 0.21404, atol=1e-4)
+    np.testing.assert_allclose(raw[3, 0], 0.04045 / 12.92, atol=1e-6)
+    np.testing.assert_allclose(raw[1, :3], [1.0, 0.0, 0.02 / 12.92], atol=1e-6)
+    np.testing.assert_allclose(load_mesh(path).vertex_colors, srgb, atol=1e-5)
+
+
+def test_morph_targets_carry_normal_deltas(rig):
+    from t2bs.geometry.mesh import vertex_normals
+
+    model, mesh, path = rig
+    gltf, _ = _raw_accessor(path, 0)
+    prim = gltf.meshes[0].primitives[0]
+    names, offsets, _ = rig_targets(model)
+    n0 = _raw_accessor(path, prim.attributes.NORMAL)[1]
+    moved = 0
+    for k in (0, 1, names.index("jaw_open")):
+        target = prim.targets[k]
+        assert set(target) == {"POSITION", "NORMAL"}
+        delta = _raw_accessor(path, target["NORMAL"])[1]
+        # What a consumer does: base normal + weight * delta, renormalised = the posed mesh's normal.
+        blended = n0 + delta
+        blended /= np.linalg.norm(blended, axis=1, keepdims=True)
+        true = vertex_normals(model.neutral + offsets[k], mesh.faces)
+        ok = np.linalg.norm(true, axis=1) > 0.5
+        np.testing.assert_allclose(blended[ok], true[ok], atol=1e-4)
+        moved += int((np.abs(delta).max(1) > 1e-3).sum())
+    assert moved > 0  # the shapes really turn some normals
+
+
+def test_usd_units_extent_and_sparse_point_indices(rig, tmp_path):
+    pytest.importorskip("pxr", reason="usd-core is optional (pip install usd-core)")
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from t2bs.blendshapes.export import export_usd
+
+    model, mesh, _ = rig
+    path = export_usd(model, mesh, tmp_path / "model.usda", capture="blinking-s0")
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0 and "metersPerUnit = 1" in path.read_text()
+    geom = UsdGeom.Mesh(stage.GetPrimAtPath("/Character/Mesh"))
+    extent = np.asarray(geom.GetExtentAttr().Get())
+    names, offsets, _ = rig_targets(model)
+    reach = np.abs(offsets).max(0)  # [N, 3]
+    assert (extent[0] <= (model.neutral - reach).min(0) + 1e-6).all() and (extent[1] >= (model.neutral + reach).max(0) - 1e-6).all()
+    binding = UsdSkel.BindingAPI(geom.GetPrim())
+    for token, off in zip(binding.GetBlendShapesAttr().Get(), offsets):
+        shape = UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Character/Mesh/{token}"))
+        idx = shape.GetPointIndicesAttr().Get()
+        got = np.zeros_like(off)
+        if idx is None:  # dense: no repeated 0..N-1 list
+            got[:] = np.asarray(shape.GetOffsetsAttr().Get())
+        else:
+            assert len(idx) < len(off)
+            got[np.asarray(idx)] = np.asarray(shape.GetOffsetsAttr().Get())
+        np.testing.assert_allclose(got, off, atol=1e-6)
+    text = path.read_text()
+    assert text.count("pointIndices") < len(names)
+
+
+def test_usd_sparse_shape_lists_only_moving_points(tmp_path):
+    pytest.importorskip("pxr", reason="usd-core is optional (pip install usd-core)")
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from t2bs.blendshapes.export import export_usd
+    from t2bs.blendshapes.model import BlendshapeModel
+    from t2bs.geometry.mesh import Mesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    basis = np.zeros((1, 4, 3), np.float32)
+    basis[0, 3, 2] = 1.0  # moves vertex 3 only
+    model = BlendshapeModel(v, basis, np.ones(1), ["pc000"], capture_weights={"a": np.array([[0.5]], np.float32)})
+    srgb = np.full((4, 3), 0.5, np.float32)
+    path = export_usd(model, Mesh(v, np.array([[0, 1, 2], [1, 3, 2]], np.int32), vertex_colors=srgb), tmp_path / "m.usda")
+    stage = Usd.Stage.Open(str(path))
+    shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Character/Mesh/pc000"))
+    assert list(shape.GetPointIndicesAttr().Get()) == [3]
+    np.testing.assert_allclose(np.asarray(shape.GetOffsetsAttr().Get()), [[0, 0, 0.5]], atol=1e-6)
+    color = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Character/Mesh")).GetPrimvar("displayColor").Get()
+    np.testing.assert_allclose(np.asarray(color), 0.21404, atol=1e-4)  # linear, like glTF

@@ -11,6 +11,11 @@ at full strength (weight 1 = the peak of the expression).
 
 USD (``model.usda``, needs ``usd-core``): a UsdSkel skeleton-less blend shape rig — a Mesh bound
 to a SkelRoot/Skeleton with one UsdSkel.BlendShape per target and a SkelAnimation of the weights.
+The stage states metersPerUnit = 1 (glTF's unit; without it tools assume centimetres and show a
+character 100x too small), the mesh carries its extent (the rest pose's box grown by every
+target's reach, so culling never clips a pose), displayColor is linear like glTF's COLOR_0, and a
+blend shape lists pointIndices only when it moves fewer than all points (UsdSkel applies offsets
+to every point when the list is absent; a full 0..N-1 list in every shape made 66 MB of text).
 """
 
 from __future__ import annotations
@@ -78,6 +83,7 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
     """Write ``model`` as USD (UsdSkel blend shapes); ImportError if usd-core is not installed."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
 
+    from t2bs.geometry.io import srgb_to_linear
     from t2bs.project import atomic_path
 
     path = Path(path)
@@ -87,6 +93,7 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         tmp_usda = tmp.with_suffix(path.suffix)
         stage = Usd.Stage.CreateNew(str(tmp_usda))
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
         stage.SetTimeCodesPerSecond(fps)
         root = UsdSkel.Root.Define(stage, "/Character")
         stage.SetDefaultPrim(root.GetPrim())
@@ -95,7 +102,8 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(character.faces), 3, np.int32)))
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(character.faces.reshape(-1).astype(np.int32)))
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-        rgb = character.vertex_rgb().astype(np.float32)
+        mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(rig_extent(model.neutral, offsets)))
+        rgb = srgb_to_linear(character.vertex_rgb())
         UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
                                                 UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(rgb))
         skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
@@ -106,8 +114,12 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         targets = []
         for token, off in zip(tokens, offsets):
             shape = UsdSkel.BlendShape.Define(stage, f"/Character/Mesh/{token}")
-            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(off.astype(np.float32)))
-            shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(np.arange(len(off), dtype=np.int32)))
+            moving = np.nonzero(np.abs(off).max(1) > 0)[0].astype(np.int32)
+            if len(moving) < len(off):  # sparse shape: only the points it moves
+                shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(off[moving].astype(np.float32)))
+                shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moving))
+            else:  # dense shape: no index list, UsdSkel then applies the offsets to every point in order
+                shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(off.astype(np.float32)))
             targets.append(shape.GetPath())
         binding.CreateBlendShapeTargetsRel().SetTargets(targets)
         anim = UsdSkel.Animation.Define(stage, "/Character/Skel/Anim")
@@ -124,6 +136,15 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         stage.GetRootLayer().Save()
         os.replace(tmp_usda, tmp)
     return path
+
+
+def rig_extent(neutral: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """[2, 3] box holding the rest pose and each target applied alone at weights -1..1."""
+    v = np.asarray(neutral, np.float64)
+    reach_lo = np.minimum(offsets, 0).min(0) if len(offsets) else 0.0  # [N, 3] along each axis
+    reach_hi = np.maximum(offsets, 0).max(0) if len(offsets) else 0.0
+    span = np.maximum(np.abs(reach_lo), reach_hi)  # weights may be negative too
+    return np.stack([(v - span).min(0), (v + span).max(0)]).astype(np.float32)
 
 
 def _usd_token(name: str) -> str:

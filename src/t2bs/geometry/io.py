@@ -4,7 +4,12 @@ trimesh drops glTF morph targets, so glTF is read here: every mesh primitive rea
 default scene is transformed by its node's world matrix and merged, one part label per primitive
 (the node or mesh name). Saving writes one primitive with POSITION, NORMAL, COLOR_0 or
 TEXCOORD_0 + an embedded PNG, named morph targets (mesh.extras.targetNames, the convention
-three.js and Blender read) and, optionally, a morph-weight animation.
+three.js and Blender read) with POSITION and NORMAL deltas and, optionally, a morph-weight animation.
+
+Colour spaces: ``Mesh.vertex_colors`` hold display (sRGB) values, like the texture's pixels, because
+that is what the renders and the videos compare against. glTF defines COLOR_0 as *linear* RGB
+(three.js and Blender apply the sRGB curve on output), so COLOR_0 is written linear and converted
+back to sRGB on reading; writing the sRGB values raw made every consumer show a washed-out character.
 """
 
 from __future__ import annotations
@@ -45,6 +50,18 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     else:
         raise UserError(f"{path}: unsupported mesh format {suffix!r} (use .glb .gltf .vrm .obj .ply)")
     return mesh.validate(str(path))
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """Display (sRGB, 0..1) colours -> linear RGB (the IEC 61966-2-1 curve), float32."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear RGB (0..1) -> display (sRGB) colours, float32; the inverse of ``srgb_to_linear``."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------- glTF read
@@ -197,9 +214,9 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
                     texture = np.clip(texture * factor, 0, 255).astype(np.uint8)
     if texture is None:
         if attrs.COLOR_0 is not None:
-            colors = _read_accessor(gltf, buffers, attrs.COLOR_0)[:, :3].astype(np.float32)
-        else:
-            colors = np.tile(factor.astype(np.float32), (len(vertices), 1))
+            colors = linear_to_srgb(_read_accessor(gltf, buffers, attrs.COLOR_0)[:, :3])
+        else:  # baseColorFactor is linear too
+            colors = np.tile(linear_to_srgb(factor), (len(vertices), 1))
     return Mesh(vertices.astype(np.float32), faces.astype(np.int32), colors, uv, texture, morphs)
 
 
@@ -317,7 +334,7 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
     b = _BinaryBuilder(gltf)
     attrs = pygltflib.Attributes(
         POSITION=b.accessor(mesh.vertices.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
-        NORMAL=b.accessor(vertex_normals(mesh.vertices, mesh.faces), "VEC3", pygltflib.ARRAY_BUFFER),
+        NORMAL=b.accessor(vertex_normals(mesh.vertices, mesh.faces).astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER),
     )
     material = pygltflib.Material(name="character", doubleSided=True, pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(metallicFactor=0.0, roughnessFactor=1.0))
     if mesh.texture is not None and mesh.uv is not None:
@@ -329,10 +346,16 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
         gltf.textures = [pygltflib.Texture(source=0, sampler=0)]
         material.pbrMetallicRoughness.baseColorTexture = pygltflib.TextureInfo(index=0)
     else:
-        rgba = np.concatenate([mesh.vertex_rgb(), np.ones((mesh.num_vertices, 1), np.float32)], 1)
+        rgba = np.concatenate([srgb_to_linear(mesh.vertex_rgb()), np.ones((mesh.num_vertices, 1), np.float32)], 1)
         attrs.COLOR_0 = b.accessor(rgba.astype(np.float32), "VEC4", pygltflib.ARRAY_BUFFER)
+    # Normal deltas: without them a consumer lights every pose with the neutral's normals (an open
+    # jaw or a closed lid keeps the neutral shading). Delta = normals of the fully applied target
+    # minus the neutral's; consumers renormalise after blending.
+    n0 = vertex_normals(mesh.vertices, mesh.faces)
     targets = [
-        {"POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True)}
+        {"POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
+         "NORMAL": b.accessor((vertex_normals(mesh.vertices + d, mesh.faces) - n0).astype(np.float32), "VEC3",
+                              pygltflib.ARRAY_BUFFER)}
         for d in mesh.morph_targets.values()
     ]
     prim = pygltflib.Primitive(

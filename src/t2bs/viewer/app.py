@@ -38,6 +38,7 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
 from t2bs.geometry.mesh import Mesh, vertex_normals
+from t2bs.geometry.io import srgb_to_linear
 
 TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
 FRAME_COLUMNS = ("frame", "index", "frame_index")  # weights.csv: row index, ignored for timing
@@ -83,12 +84,6 @@ class Retarget:
     def note(self) -> str:
         """Shown under the retargeting panel's slider."""
         return f"ignored columns: {', '.join(self.ignored)}" if self.ignored else ""
-
-
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """glTF vertex colours are linear; the mesh stores display (sRGB) colours."""
-    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def load_character(root: Path) -> Mesh:
@@ -334,7 +329,7 @@ class ViewerApp:
         n = self.mesh.num_vertices
         self.faces = self.mesh.faces.astype(np.int64)
         self.colors = self.mesh.vertex_rgb().astype(np.float32)  # [N, 3] display colours
-        self._colors_linear = _srgb_to_linear(self.colors)
+        self._colors_linear = srgb_to_linear(self.colors)
         self._stack = (np.stack([s.offsets for s in self.shapes]).reshape(len(self.shapes), -1)
                        if self.shapes else np.zeros((0, n * 3), np.float32))  # [M, 3N]
         self._sigma = vertex_splat_sigma(self.neutral, self.faces)
