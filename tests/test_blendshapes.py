@@ -185,18 +185,23 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
         np.save(tmp_path / "videos" / name / "gt_vertices.npy", frames)
     with pytest.raises(UserError, match="no finished reconstructions"):
         blendshapes_command(tmp_path, components=100, source="vcdgs", semantic=True, animation=None, usd=False,
-                            fps=8.0, force=False)
+                            fps=8.0, force=False, arkit=True)
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False)
+                        fps=8.0, force=False, arkit=True)
     out = capsys.readouterr().out
     assert "gt captures" in out and "explained variance" in out
     model = load_model(tmp_path / "blendshapes" / "model.npz")
     assert model.semantic_names == ["blink", "smile", "tongue_out"]
     rig = load_mesh(tmp_path / "blendshapes" / "model.glb")
-    assert list(rig.morph_targets) == model.names + model.semantic_names
+    from t2bs.blendshapes.export import visible_components
+    from t2bs.retarget.arkit import load_arkit_shapes
+
+    arkit = load_arkit_shapes(tmp_path / "blendshapes" / "arkit.json", model.num_components)
+    assert "ARKit shapes:" in out and len(arkit.report) == 52 and "eyeBlinkLeft" in arkit.names
+    assert list(rig.morph_targets) == arkit.names + model.semantic_names + [model.names[k] for k in visible_components(model)]
     assert (tmp_path / "blendshapes" / "done.json").exists()
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False)
+                        fps=8.0, force=False, arkit=True)
     assert "up to date" in capsys.readouterr().out
 
 

@@ -39,25 +39,54 @@ def rig(tmp_path_factory):
     model = build_model(mesh.vertices, caps, components=100)
     model.semantic_names, model.semantic_weights, model.semantic_sources = semantic_shapes(model, caps, expr)
     path = tmp_path_factory.mktemp("rig") / "model.glb"
-    export_glb(model, mesh, path, capture="blinking-s0")
+    export_glb(model, mesh, path, capture="blinking-s0", arkit=_arkit(model, mesh))
     return model, mesh, path
+
+
+def _arkit(model, mesh):
+    from t2bs.retarget.arkit import derive_arkit_shapes
+    from t2bs.retarget.landmarks import detect_landmarks
+
+    lm, _ = detect_landmarks(mesh, "auto", model=model)
+    return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
+                               lm.regions.get("mouth", {}).get("width_world"))
+
+
+def _exported(path):
+    """Morph target names of an exported .glb, in file order."""
+    from t2bs.geometry.io import load_mesh
+
+    return load_mesh(path).morph_names
 
 
 def test_glb_round_trip_targets_animation(rig):
     from t2bs.geometry.io import load_mesh
 
+    from t2bs.blendshapes.export import MIN_VISIBLE, visible_components
+    from t2bs.retarget.arkit import ARKIT_NAMES
+
     model, mesh, path = rig
     back = load_mesh(path)
-    names, offsets, scale = rig_targets(model)
-    assert list(back.morph_targets) == names == model.names + model.semantic_names
+    arkit = _arkit(model, mesh)
+    names, offsets, scale = rig_targets(model, arkit)
+    keep = visible_components(model)
+    # ARKit names first (Apple's spelling, in ARKit order), then the prompt-named shapes, then visible PCs.
+    assert list(back.morph_targets) == names == arkit.names + model.semantic_names + [model.names[k] for k in keep]
+    assert {"eyeBlinkLeft", "eyeBlinkRight", "jawOpen"} <= set(arkit.names) and set(arkit.names) <= set(ARKIT_NAMES)
     assert "jaw_open" in names and "blink" in names
+    assert 0 < len(keep) < model.num_components  # the turtle's captures leave invisible components
     np.testing.assert_allclose(back.vertices, model.neutral, atol=1e-6)
-    # Exported weights (scaled targets) pose the same mesh as the basis weights, within -1..1.
+    np.testing.assert_allclose(offsets[names.index("jawOpen")], model.offsets(arkit.weights[arkit.names.index("jawOpen")]), atol=1e-6)
+    # Exported weights (scaled targets) pose the same mesh as the basis weights, within -1..1, up to
+    # the dropped components, each below MIN_VISIBLE of the diagonal.
     w = model.capture_weights["smiling-s0"]
-    ew = export_weights(model, w)
-    assert np.abs(ew).max() <= 1 + 1e-6
+    ew = export_weights(model, w, arkit)
+    assert np.abs(ew).max() <= 1 + 1e-6 and ew.shape[1] == len(names)
     posed = back.vertices + np.einsum("tm,mnc->tnc", ew, np.stack(list(back.morph_targets.values())))
-    np.testing.assert_allclose(posed, model.vertices(w), atol=1e-4)
+    drop = np.setdiff1d(np.arange(model.num_components), keep)
+    bound = MIN_VISIBLE * mesh.bbox_diagonal() * len(drop) + 1e-4
+    assert np.abs(posed - model.vertices(w)).max() < bound
+    np.testing.assert_allclose(posed, model.vertices(w * np.isin(np.arange(model.num_components), keep)), atol=1e-4)
     import pygltflib
 
     gltf = pygltflib.GLTF2().load(str(path))
@@ -132,7 +161,7 @@ def test_three_js_loads_the_rig_in_headless_chromium(rig, tmp_path):
         server.shutdown()
         (JS / f".test-{tmp_path.name}.glb").unlink(missing_ok=True)
     assert result["ok"], result
-    names = model.names + model.semantic_names
+    names = _exported(path)
     (mesh,) = result["meshes"]
     assert mesh["morphTargetInfluences"] == len(names) == mesh["morphPositions"]
     assert mesh["targetNames"] == names and mesh["influencesAllZero"] and mesh["textured"]
@@ -151,9 +180,7 @@ def test_usd_export(rig, tmp_path):
     stage = Usd.Stage.Open(str(path))
     binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Character/Mesh"))
     names = binding.GetBlendShapesAttr().Get()
-    assert len(names) == len(model.names) + len(model.semantic_names)
-    shape = UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Character/Mesh/{names[0]}"))
-    assert len(shape.GetOffsetsAttr().Get()) == model.num_vertices
+    assert list(names) == rig_targets(model)[0]
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Skel/Anim"))
     assert len(anim.GetBlendShapeWeightsAttr().GetTimeSamples()) == len(model.capture_weights["blinking-s0"])
     assert pxr is not None
@@ -193,11 +220,14 @@ def test_morph_targets_carry_normal_deltas(rig):
 
     model, mesh, path = rig
     gltf, _ = _raw_accessor(path, 0)
+    from t2bs.geometry.io import load_mesh
+
     prim = gltf.meshes[0].primitives[0]
-    names, offsets, _ = rig_targets(model)
+    back = load_mesh(path)
+    names, offsets = back.morph_names, np.stack(list(back.morph_targets.values()))
     n0 = _raw_accessor(path, prim.attributes.NORMAL)[1]
     moved = 0
-    for k in (0, 1, names.index("jaw_open")):
+    for k in (names.index("jawOpen"), names.index("jaw_open"), names.index("pc000")):
         target = prim.targets[k]
         assert set(target) == {"POSITION", "NORMAL"}
         delta = _raw_accessor(path, target["NORMAL"])[1]

@@ -1,9 +1,12 @@
 """Export a blendshape model as glTF morph targets (and optionally USD blend shapes).
 
-glTF (``model.glb``): the neutral textured character (``t2bs.geometry.io.save_mesh``), one morph
-target per PCA component then one per named shape, names in ``mesh.extras.targetNames`` (what
-three.js and Blender read), default weights 0 (= the neutral pose, see model.py), and an
-animation that replays one capture. The PCA targets are stored *scaled*: target_k = basis_k *
+glTF (``model.glb``): the neutral textured character (``t2bs.geometry.io.save_mesh``), morph
+targets in the order a user looks for them: the ARKit-named shapes (``t2bs.retarget.arkit``, Apple's
+names), then the prompt-named shapes, then the PCA components that move something visible (the
+exported target's largest vertex offset is at least ``MIN_VISIBLE`` of the bounding-box diagonal,
+about one pixel of the 512-px frontal render; ``model.npz`` keeps the full basis). Names in
+``mesh.extras.targetNames`` (what three.js and Blender read), default weights 0 (= the neutral
+pose, see model.py), and an animation that replays one capture. The PCA targets are stored *scaled*: target_k = basis_k *
 range_k with range_k = the largest |weight| of component k over the captures, so every captured
 frame lies within weights -1..1 of the sliders (an orthonormal basis vector has unit norm over all
 3N coordinates, which would put useful weights in the tens or hundreds). Named shapes are stored
@@ -41,45 +44,69 @@ def target_ranges(model: BlendshapeModel) -> np.ndarray:
     return np.maximum(rng, 1e-9).astype(np.float64)
 
 
-def rig_targets(model: BlendshapeModel) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(names [M], offsets [M, N, 3], per-target scale [K] of the PCA part) as exported."""
+MIN_VISIBLE = 0.002  # PCA target kept when its largest offset >= this x bbox diagonal (~1 px at 512 px frontal)
+
+
+def visible_components(model: BlendshapeModel, min_visible: float = MIN_VISIBLE) -> np.ndarray:
+    """[K'] indices of the PCA components whose exported target moves a vertex visibly."""
     rng = target_ranges(model)
-    pcs = model.basis.astype(np.float64) * rng[:, None, None]
+    reach = np.linalg.norm(model.basis.astype(np.float64), axis=-1).max(1) * rng  # [K] largest vertex offset
+    lo, hi = model.neutral.min(0), model.neutral.max(0)
+    return np.nonzero(reach >= min_visible * float(np.linalg.norm(hi - lo)))[0]
+
+
+def _named(arkit) -> tuple[list[str], np.ndarray | None]:
+    """(names, weights [S, K]) of ARKit shapes given as an ``ArkitShapes`` or None."""
+    if arkit is None or not len(arkit.names):
+        return [], None
+    return list(arkit.names), np.asarray(arkit.weights, np.float64)
+
+
+def rig_targets(model: BlendshapeModel, arkit=None, min_visible: float = MIN_VISIBLE) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(names [M], offsets [M, N, 3], per-target scale [K'] of the kept PCA part) as exported:
+    ARKit shapes (``arkit``: ``t2bs.retarget.arkit.ArkitShapes`` or None), named shapes, visible PCs."""
+    keep = visible_components(model, min_visible)
+    rng = target_ranges(model)[keep]
+    pcs = model.basis[keep].astype(np.float64) * rng[:, None, None]
     sem = model.semantic_offsets().astype(np.float64)
-    names = list(model.names) + list(model.semantic_names)
-    return names, np.concatenate([pcs, sem]).astype(np.float32), rng
+    ark_names, ark_w = _named(arkit)
+    ark = model.offsets(ark_w) if ark_w is not None else np.zeros((0, *model.neutral.shape))
+    names = ark_names + list(model.semantic_names) + [model.names[k] for k in keep]
+    return names, np.concatenate([ark, sem, pcs]).astype(np.float32), rng
 
 
-def export_weights(model: BlendshapeModel, weights: np.ndarray) -> np.ndarray:
-    """Basis weights [T, K] -> exported target weights [T, M] (named shapes at 0)."""
-    rng = target_ranges(model)
-    w = np.asarray(weights, np.float64) / rng
-    return np.concatenate([w, np.zeros((len(w), len(model.semantic_names)))], 1).astype(np.float32)
+def export_weights(model: BlendshapeModel, weights: np.ndarray, arkit=None, min_visible: float = MIN_VISIBLE) -> np.ndarray:
+    """Basis weights [T, K] -> exported target weights [T, M] (named shapes at 0, invisible PCs dropped)."""
+    keep = visible_components(model, min_visible)
+    w = np.asarray(weights, np.float64)[:, keep] / target_ranges(model)[keep]
+    named = len(_named(arkit)[0]) + len(model.semantic_names)
+    return np.concatenate([np.zeros((len(w), named)), w], 1).astype(np.float32)
 
 
-def rig_mesh(model: BlendshapeModel, character: Mesh) -> Mesh:
+def rig_mesh(model: BlendshapeModel, character: Mesh, arkit=None) -> Mesh:
     """The character at the model's neutral with the model's targets replacing its own."""
     if character.vertices.shape != model.neutral.shape:
         raise ValueError(f"character has {character.num_vertices} vertices, model {model.num_vertices}")
-    names, offsets, _ = rig_targets(model)
+    names, offsets, _ = rig_targets(model, arkit)
     return replace(character, vertices=model.neutral.astype(np.float32), morph_targets=dict(zip(names, offsets)))
 
 
 def export_glb(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
-               fps: float = 8.0) -> Path:
-    """Write ``model`` as a .glb; ``capture`` (a video id of the model) becomes its animation."""
+               fps: float = 8.0, arkit=None) -> Path:
+    """Write ``model`` as a .glb; ``capture`` (a video id of the model) becomes its animation;
+    ``arkit`` (``ArkitShapes``) adds the ARKit-named shapes first."""
     from t2bs.geometry.io import save_mesh
 
-    mesh = rig_mesh(model, character)
+    mesh = rig_mesh(model, character, arkit)
     animation = None
     if capture is not None and capture in model.capture_weights:
-        w = export_weights(model, model.capture_weights[capture])
+        w = export_weights(model, model.capture_weights[capture], arkit)
         animation = {"times": np.arange(len(w), dtype=np.float32) / fps, "weights": w, "name": capture}
     return save_mesh(mesh, path, animation=animation)
 
 
 def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
-               fps: float = 8.0) -> Path:
+               fps: float = 8.0, arkit=None) -> Path:
     """Write ``model`` as USD (UsdSkel blend shapes); ImportError if usd-core is not installed."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
 
@@ -87,7 +114,7 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
     from t2bs.project import atomic_path
 
     path = Path(path)
-    names, offsets, _ = rig_targets(model)
+    names, offsets, _ = rig_targets(model, arkit)
     tokens = [_usd_token(n) for n in names]
     with atomic_path(path) as tmp:
         tmp_usda = tmp.with_suffix(path.suffix)
@@ -127,7 +154,7 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         weights_attr = anim.CreateBlendShapeWeightsAttr()
         weights_attr.Set(Vt.FloatArray.FromNumpy(np.zeros(len(tokens), np.float32)))
         if capture is not None and capture in model.capture_weights:
-            w = export_weights(model, model.capture_weights[capture])
+            w = export_weights(model, model.capture_weights[capture], arkit)
             for t, row in enumerate(w):
                 weights_attr.Set(Vt.FloatArray.FromNumpy(row), Usd.TimeCode(t))
             stage.SetStartTimeCode(0)
