@@ -60,7 +60,7 @@ def test_derived_shapes_match_facecaps_own(facecap):
     for name, w in zip(shapes.names, shapes.weights):
         d = model.offsets(w).reshape(-1)
         cos[name] = float(d @ truth[name] / (np.linalg.norm(d) * np.linalg.norm(truth[name])))
-    assert np.median(list(cos.values())) > 0.68  # measured 0.722 (benchmarks/arkit_facecap.py)
+    assert np.median(list(cos.values())) > 0.68  # measured 0.724 (benchmarks/arkit_facecap.py)
     assert cos["jawOpen"] > 0.95 and cos["eyeBlinkLeft"] > 0.7 and cos["mouthSmileLeft"] > 0.75
     # Left is the character's own left (+X): eyeBlinkLeft moves the +X eye far more than the -X one.
     d = np.linalg.norm(model.offsets(shapes.weights[shapes.names.index("eyeBlinkLeft")]), axis=1)
@@ -81,4 +81,4 @@ def test_a_rig_that_only_blinks_both_eyes_has_no_one_eyed_blink(facecap):
     assert "jawOpen" in shapes.names
     for side in ("eyeBlinkLeft", "eyeBlinkRight"):
         r = shapes.report[side]
-        assert not r["present"] and "captures cannot express" in r["why"] and 0.5 < r["cosine"] < 0.8
+        assert not r["present"] and "captures cannot express" in r["why"] and r["crosstalk"] > 0.6  # both eyes move

@@ -272,7 +272,8 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, animation: dict | None = None
     """Write ``mesh`` to .glb (morph targets, texture, optional animation) or .ply, atomically.
 
     ``animation``: {"times": [T] seconds, "weights": [T, M] morph weights in target order,
-    "name": str} adds a glTF animation driving the morph weights.
+    "name": str} adds a glTF animation driving the morph weights; optional "rotation": [T, 4]
+    unit quaternions (x, y, z, w) and "translation": [T, 3] animate the node rigidly (a head turn).
     """
     from t2bs.project import atomic_path
 
@@ -380,13 +381,18 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
             raise ValueError(f"animation weights must be [T={len(times)}, M={len(targets)}], got {weights.shape}")
         t_acc = b.accessor(times, "SCALAR", bounds=True)
         w_acc = b.accessor(weights.reshape(-1), "SCALAR")
-        gltf.animations = [
-            pygltflib.Animation(
-                name=animation.get("name", "capture"),
-                samplers=[pygltflib.AnimationSampler(input=t_acc, output=w_acc, interpolation="LINEAR")],
-                channels=[pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))],
-            )
-        ]
+        samplers = [pygltflib.AnimationSampler(input=t_acc, output=w_acc, interpolation="LINEAR")]
+        channels = [pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))]
+        for key, kind in (("rotation", "VEC4"), ("translation", "VEC3")):
+            if animation.get(key) is None:
+                continue
+            values = np.asarray(animation[key], dtype=np.float32)
+            if values.shape != (len(times), 4 if kind == "VEC4" else 3):
+                raise ValueError(f"animation {key} must be [T={len(times)}, {4 if kind == 'VEC4' else 3}], got {values.shape}")
+            samplers.append(pygltflib.AnimationSampler(input=t_acc, output=b.accessor(values, kind), interpolation="LINEAR"))
+            channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1,
+                                                       target=pygltflib.AnimationChannelTarget(node=0, path=key)))
+        gltf.animations = [pygltflib.Animation(name=animation.get("name", "capture"), samplers=samplers, channels=channels)]
     gltf.buffers = [pygltflib.Buffer(byteLength=len(b.blob))]
     gltf.set_binary_blob(bytes(b.blob))
     return gltf
