@@ -2,13 +2,8 @@
 
 from __future__ import annotations
 
-import functools
-import http.server
 import json
-import shutil
 import subprocess
-import tempfile
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +16,6 @@ from t2bs.blendshapes.semantic import semantic_shapes
 REPO = Path(__file__).resolve().parents[1]
 JS = REPO / "tools" / "js"
 TURTLE = REPO.parent / "shared" / "assets" / "turtle.glb"
-CHROMEDRIVER = "/usr/bin/chromedriver"
 
 
 @pytest.fixture(scope="module")
@@ -95,13 +89,9 @@ def test_glb_round_trip_targets_animation(rig):
 
 
 def _node_modules() -> Path:
-    if shutil.which("node") is None:
-        pytest.skip("node is not installed (scripts/setup.sh installs it with the system packages)")
-    if not (JS / "node_modules" / "gltf-validator").exists() or not (JS / "node_modules" / "three").exists():
-        if shutil.which("npm") is None:
-            pytest.skip("npm is not installed")
-        subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--silent"], cwd=JS, check=True, timeout=300)
-    return JS / "node_modules"
+    from browser_page import node_modules
+
+    return node_modules()
 
 
 def test_khronos_gltf_validator_reports_no_errors(rig):
@@ -123,50 +113,27 @@ def test_validator_script_catches_a_broken_file(tmp_path, rig):
     assert proc.returncode == 1 and json.loads(proc.stdout)["errors"] > 0
 
 
-class _QuietHandler(http.server.SimpleHTTPRequestHandler):
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".js": "text/javascript",
-                      ".mjs": "text/javascript", ".glb": "model/gltf-binary"}
-
-    def log_message(self, *args):  # keep pytest output clean
-        pass
-
-
 def test_three_js_loads_the_rig_in_headless_chromium(rig, tmp_path):
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None or not Path(CHROMEDRIVER).exists():
-        pytest.skip("Debian's chromium + chromium-driver are not installed (scripts/setup.sh installs them)")
-    _node_modules()
-    webdriver = pytest.importorskip("selenium.webdriver", reason="pip install selenium (the test extra)")
-    from selenium.webdriver.chrome.service import Service
-    from selenium.webdriver.support.ui import WebDriverWait
+    import base64
+
+    from browser_page import run_page
 
     model, _, path = rig
-    shutil.copy(path, JS / f".test-{tmp_path.name}.glb")  # served next to the page (dot file: not committed)
-    handler = functools.partial(_QuietHandler, directory=str(JS))
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
-                 f"--user-data-dir={tempfile.mkdtemp(prefix='t2bs-chrome-', dir=tmp_path)}"):
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    try:
-        port = server.server_address[1]
-        driver.get(f"http://127.0.0.1:{port}/three_check.html?glb=.test-{tmp_path.name}.glb")
-        result = WebDriverWait(driver, 60).until(lambda d: d.execute_script("return window.t2bsResult || null"))
-    finally:
-        driver.quit()
-        server.shutdown()
-        (JS / f".test-{tmp_path.name}.glb").unlink(missing_ok=True)
+    result = run_page("three_check.html", {f".test-{tmp_path.name}.glb": path},
+                      f"glb=.test-{tmp_path.name}.glb&shot=jawOpen", tmp_path)
     assert result["ok"], result
     names = _exported(path)
     (mesh,) = result["meshes"]
     assert mesh["morphTargetInfluences"] == len(names) == mesh["morphPositions"]
     assert mesh["targetNames"] == names and mesh["influencesAllZero"] and mesh["textured"]
+    assert names[0] == "eyeBlinkLeft" and "jawOpen" in result["dictionaries"][0]  # morphTargetDictionary: ARKit names
     assert mesh["vertices"] == model.num_vertices
     assert result["clips"][0]["name"] == "blinking-s0" and result["mixerOk"] is True
+    # WebGL screenshots: jawOpen at 1 visibly changes the face (the mouth opens) and nothing else is lost.
+    shot = result["screenshots"]
+    assert shot["characterPixels"] > 3000 and 0.01 * shot["characterPixels"] < shot["changedPixels"] < 0.5 * shot["characterPixels"]
+    for key in ("neutral", "posed"):
+        (tmp_path / f"three_jawOpen_{key}.png").write_bytes(base64.b64decode(shot[key].split(",", 1)[1]))
 
 
 def test_usd_export(rig, tmp_path):

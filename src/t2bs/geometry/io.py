@@ -69,7 +69,10 @@ def linear_to_srgb(c: np.ndarray) -> np.ndarray:
 
 def _load_gltf(path: Path) -> Mesh:
     try:
-        gltf = pygltflib.GLTF2().load(str(path))
+        # pygltflib picks binary vs JSON by the suffix; a .vrm is a binary glTF under another name.
+        with open(path, "rb") as f:
+            binary = f.read(4) == b"glTF"
+        gltf = pygltflib.GLTF2().load_binary(str(path)) if binary else pygltflib.GLTF2().load_json(str(path))
     except Exception as exc:  # pygltflib raises many types on garbage input
         raise UserError(f"{path}: not a readable glTF/GLB file ({type(exc).__name__})") from None
     if gltf is None or not gltf.meshes:
