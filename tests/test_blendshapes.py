@@ -198,6 +198,11 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
 
     arkit = load_arkit_shapes(tmp_path / "blendshapes" / "arkit.json", model.num_components)
     assert "ARKit shapes:" in out and len(arkit.report) == 52 and "eyeBlinkLeft" in arkit.names
+    from PIL import Image
+
+    sheet = np.asarray(Image.open(tmp_path / "blendshapes" / "arkit_sheet.png"))  # neutral + up to 12 shapes, 4 a row
+    rows = -(-(1 + min(12, len(arkit.names))) // 4)
+    assert sheet.shape == (rows * 192, 4 * 192, 3) and (sheet[:192, 192:384] != sheet[:192, :192]).any()
     assert list(rig.morph_targets) == arkit.names + model.semantic_names + [model.names[k] for k in visible_components(model)]
     assert (tmp_path / "blendshapes" / "done.json").exists()
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,

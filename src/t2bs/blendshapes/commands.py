@@ -163,6 +163,11 @@ def _arkit_shapes(project, model, character):
         return None
     write_json(path, shapes.to_dict())
     print(f"blendshapes: {summary(shapes)} (why each: {path})")
+    if shapes.names:
+        from t2bs.project import write_image
+        from t2bs.retarget.arkit import contact_sheet
+
+        write_image(project.path("blendshapes", "arkit_sheet.png"), contact_sheet(model, character, shapes))
     return shapes
 
 
