@@ -82,3 +82,17 @@ def test_a_rig_that_only_blinks_both_eyes_has_no_one_eyed_blink(facecap):
     for side in ("eyeBlinkLeft", "eyeBlinkRight"):
         r = shapes.report[side]
         assert not r["present"] and "captures cannot express" in r["why"] and r["crosstalk"] > 0.6  # both eyes move
+
+
+def test_report_lists_arkit_shapes_and_how_to_open_the_rig(tmp_path):
+    from t2bs.pipeline import write_report
+    from t2bs.project import Project, write_json
+    from t2bs.retarget.arkit import ArkitShapes
+
+    report = {"jawOpen": {"present": True, "why": "derived"}, "browInnerUp": {"present": False, "why": "cannot see it"}}
+    write_json(tmp_path / "blendshapes" / "arkit.json", ArkitShapes(["jawOpen"], np.ones((1, 2)), report).to_dict())
+    out = write_report(Project(tmp_path), "a fox", "quick", {"blendshapes": 1.0})
+    assert out["blendshapes"]["arkit"] == ["jawOpen"] and out["blendshapes"]["arkit_absent"] == {"browInnerUp": "cannot see it"}
+    md = (tmp_path / "report.md").read_text()
+    assert "1 of the 52 present: jawOpen." in md and "![ARKit shapes](blendshapes/arkit_sheet.png)" in md
+    assert "Blender: File > Import > glTF 2.0" in md and "--format vrm" in md and "t2bs view" in md
