@@ -258,3 +258,22 @@ def test_usd_sparse_shape_lists_only_moving_points(tmp_path):
     np.testing.assert_allclose(np.asarray(shape.GetOffsetsAttr().Get()), [[0, 0, 0.5]], atol=1e-6)
     color = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Character/Mesh")).GetPrimvar("displayColor").Get()
     np.testing.assert_allclose(np.asarray(color), 0.21404, atol=1e-4)  # linear, like glTF
+
+
+def test_usd_binary_is_the_default_and_reads_back(rig, tmp_path):
+    pytest.importorskip("pxr", reason="usd-core is optional (pip install usd-core)")
+    from pxr import Usd, UsdSkel
+
+    from t2bs.blendshapes.export import export_usd
+
+    model, mesh, _ = rig
+    text = export_usd(model, mesh, tmp_path / "m.usda")
+    binary = export_usd(model, mesh, tmp_path / "m.usdc")
+    assert binary.read_bytes()[:8] == b"PXR-USDC" and binary.stat().st_size < 0.5 * text.stat().st_size
+    a, b = Usd.Stage.Open(str(text)), Usd.Stage.Open(str(binary))
+    names = rig_targets(model)[0]
+    token = UsdSkel.BindingAPI(b.GetPrimAtPath("/Character/Mesh")).GetBlendShapesAttr().Get()[0]
+    for stage in (a, b):
+        shape = UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Character/Mesh/{token}"))
+        assert len(shape.GetOffsetsAttr().Get()) in (model.num_vertices, len(shape.GetPointIndicesAttr().Get() or []))
+    assert len(UsdSkel.BindingAPI(b.GetPrimAtPath("/Character/Mesh")).GetBlendShapesAttr().Get()) == len(names)

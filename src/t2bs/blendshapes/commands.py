@@ -88,7 +88,7 @@ def blendshapes_command(
     source: str = typer.Option("auto", "--source", help="vcdgs: recon/*/vertices.npy; gt: videos/*/gt_vertices.npy; auto: vcdgs if present."),
     semantic: bool = typer.Option(True, "--semantic/--no-semantic", help="Add one named shape per expression prompt."),
     animation: Optional[str] = typer.Option(None, "--animation", help="Video id replayed by model.glb (default: the capture that moves most)."),
-    usd: bool = typer.Option(False, "--usd", help="Also write model.usda (UsdSkel blend shapes; needs usd-core)."),
+    usd: bool = typer.Option(False, "--usd", help="Also write model.usdc (binary USD, UsdSkel blend shapes; needs usd-core)."),
     fps: float = typer.Option(8.0, "--fps", help="Frame rate of the exported animation."),
     force: bool = typer.Option(False, "--force", help="Rebuild even if the inputs did not change."),
     arkit: bool = typer.Option(True, "--arkit/--no-arkit", help="Derive the ARKit-52 named shapes (needs the 20 landmarks; docs/ARKIT.md)."),
@@ -123,7 +123,7 @@ def blendshapes_command(
     export_glb(model, character, out / "model.glb", capture=replay, fps=fps, arkit=shapes)
     if usd:
         try:
-            export_usd(model, character, out / "model.usda", capture=replay, fps=fps, arkit=shapes)
+            export_usd(model, character, out / "model.usdc", capture=replay, fps=fps, arkit=shapes)
         except ImportError:
             raise UserError("--usd needs usd-core: pip install usd-core") from None
     ev = model.explained_variance

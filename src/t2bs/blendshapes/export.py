@@ -12,13 +12,15 @@ frame lies within weights -1..1 of the sliders (an orthonormal basis vector has 
 3N coordinates, which would put useful weights in the tens or hundreds). Named shapes are stored
 at full strength (weight 1 = the peak of the expression).
 
-USD (``model.usda``, needs ``usd-core``): a UsdSkel skeleton-less blend shape rig — a Mesh bound
+USD (``model.usdc``, binary; ``.usda`` for text; needs ``usd-core``): a UsdSkel skeleton-less blend shape rig — a Mesh bound
 to a SkelRoot/Skeleton with one UsdSkel.BlendShape per target and a SkelAnimation of the weights.
 The stage states metersPerUnit = 1 (glTF's unit; without it tools assume centimetres and show a
 character 100x too small), the mesh carries its extent (the rest pose's box grown by every
 target's reach, so culling never clips a pose), displayColor is linear like glTF's COLOR_0, and a
 blend shape lists pointIndices only when it moves fewer than all points (UsdSkel applies offsets
-to every point when the list is absent; a full 0..N-1 list in every shape made 66 MB of text).
+to every point when the list is absent; a full 0..N-1 list in every shape made 66 MB of text). The
+stage writes the binary crate format: the demo fox's 63 dense shapes x 23,550 points are 70 MB as
+text and 18.5 MB as .usdc.
 """
 
 from __future__ import annotations

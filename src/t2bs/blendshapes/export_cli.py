@@ -24,13 +24,13 @@ def _project_name(project) -> str:
 
 def export_command(
     project_dir: Path = typer.Argument(..., help="Project folder with blendshapes/model.npz."),
-    format: str = typer.Option("vrm", "--format", "-f", help="glb (model.glb), usd (model.usda) or vrm (VRM 1.0 avatar)."),
+    format: str = typer.Option("vrm", "--format", "-f", help="glb (model.glb), usd (model.usdc; -o x.usda for text) or vrm (VRM 1.0 avatar)."),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="Output file (default DIR/blendshapes/model.<ext>)."),
     license: Optional[str] = typer.Option(None, "--license", help="VRM: licence id (VPL-1.0, CC0-1.0, CC-BY-4.0, ...) or URL; required."),
     author: list[str] = typer.Option([], "--author", help="VRM: author name (repeatable; default: the t2bs user)."),
     name: Optional[str] = typer.Option(None, "--name", help="VRM: avatar name (default: the character prompt or folder name)."),
 ) -> None:
-    """Export the blendshape rig (ARKit shapes first) as .glb, .usda or .vrm (docs/ARKIT.md)."""
+    """Export the blendshape rig (ARKit shapes first) as .glb, .usdc/.usda or .vrm (docs/ARKIT.md)."""
     import getpass
 
     from t2bs.blendshapes.export import export_glb, export_usd
@@ -48,7 +48,7 @@ def export_command(
     if character.num_vertices != model.num_vertices:
         raise UserError(f"blendshape model has {model.num_vertices} vertices but the character has {character.num_vertices}")
     arkit = load_arkit_shapes(project.path("blendshapes", "arkit.json"), model.num_components)
-    ext = {"glb": ".glb", "usd": ".usda", "vrm": ".vrm"}[format]
+    ext = {"glb": ".glb", "usd": ".usdc", "vrm": ".vrm"}[format]
     path = Path(out) if out is not None else project.path("blendshapes", f"model{ext}")
     if format == "glb":
         export_glb(model, character, path, arkit=arkit)
