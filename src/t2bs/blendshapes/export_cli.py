@@ -35,7 +35,7 @@ def export_command(
 
     from t2bs.blendshapes.export import export_glb, export_usd
     from t2bs.blendshapes.model import load_model
-    from t2bs.project import Project
+    from t2bs.project import Project, read_json
     from t2bs.retarget.arkit import load_arkit_shapes
 
     if format not in FORMATS:
@@ -50,11 +50,13 @@ def export_command(
     arkit = load_arkit_shapes(project.path("blendshapes", "arkit.json"), model.num_components)
     ext = {"glb": ".glb", "usd": ".usdc", "vrm": ".vrm"}[format]
     path = Path(out) if out is not None else project.path("blendshapes", f"model{ext}")
+    stats = project.path("blendshapes", "stats.json")
+    replay = read_json(stats).get("animation") if stats.exists() else None  # the capture model.glb replays
     if format == "glb":
-        export_glb(model, character, path, arkit=arkit)
+        export_glb(model, character, path, capture=replay, arkit=arkit)
     elif format == "usd":
         try:
-            export_usd(model, character, path, arkit=arkit)
+            export_usd(model, character, path, capture=replay, arkit=arkit)
         except ImportError:
             raise UserError("--format usd needs usd-core: pip install usd-core") from None
     else:
