@@ -90,7 +90,6 @@ def test_bad_csvs_get_one_line(tmp_path):
 
 
 def test_csv_drives_the_fox(fox_project, tmp_path):
-    import pygltflib
     from t2bs.geometry.io import _read_accessor
 
     root, model, shapes = fox_project
