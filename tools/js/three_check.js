@@ -10,6 +10,14 @@ function report(result) {
 
 const params = new URLSearchParams(window.location.search);
 const url = params.get("glb");
+
+function safeScreenshots(gltf, name) {
+  try {
+    return screenshots(gltf, name);
+  } catch (err) {
+    return { error: `WebGL screenshots failed: ${err && err.message ? err.message : err}` };
+  }
+}
 const shot = params.get("shot"); // a morph target name: render it at weight 0 and 1 (WebGL screenshots)
 
 // Frontal screenshots of the first morphing mesh with target ``name`` at 0 and at 1: the pipeline's
@@ -85,7 +93,7 @@ if (!url) {
       }
       const dictionaries = meshes.map((m) => m.targetNames);
       report({ ok: true, three: THREE.REVISION, meshes, clips, mixerOk, dictionaries,
-               screenshots: shot ? screenshots(gltf, shot) : null });
+               screenshots: shot ? safeScreenshots(gltf, shot) : null });
     },
     undefined,
     (err) => report({ ok: false, error: String(err && err.message ? err.message : err) }),

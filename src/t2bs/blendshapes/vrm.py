@@ -170,7 +170,7 @@ def export_vrm(model, character, path: str | os.PathLike, name: str, authors: li
 
     preset = {p: {"morphTargetBinds": binds(r), "isBinary": False,
                   "overrideBlink": "none", "overrideLookAt": "none", "overrideMouth": "none"} for p, r in bound.items()}
-    # An emotion or a vowel closes the eyes / mouth on its own: let it override blinking where it moves the eyes.
+    # An emotion whose recipe closes the eyes itself blends with the blink presets instead of adding to them.
     for p in ("happy", "angry", "sad", "relaxed", "surprised"):
         if p in preset and any("Blink" in s or "blink" in s for s, _ in bound[p]):
             preset[p]["overrideBlink"] = "blend"
