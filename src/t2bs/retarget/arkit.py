@@ -19,7 +19,7 @@ landmarks alike (a blink, or a blink plus the eyeballs rolling). The solve there
 own Gaussian prior, ``ridge * sum_k (s_0 / s_k)^2 w_k^2``: among the shapes that move the landmarks
 right it picks the one the captures make most often. Measured on facecap (whose own ARKit shapes are
 the truth, ``benchmarks/arkit_facecap.py``): median displacement cosine 0.56 with the solve's plain
-ridge, 0.71 with the prior at 1e-4 (jawOpen 0.62 -> 0.99, eyeBlinkLeft 0.34 -> 0.77).
+ridge, 0.72 with the prior at 1e-4 (jawOpen 0.62 -> 0.99, eyeBlinkLeft 0.34 -> 0.77).
 
 Left/right are the character's own: the reference's ``...Left`` moves the subject's left (+X), the
 character's landmarks 42-47 sit on its left (+X), nothing is mirrored.
