@@ -6,14 +6,14 @@ names), then the prompt-named shapes, then the PCA components that move somethin
 exported target's largest vertex offset is at least ``MIN_VISIBLE`` of the bounding-box diagonal,
 about one pixel of the 512-px frontal render; ``model.npz`` keeps the full basis). Names in
 ``mesh.extras.targetNames`` (what three.js and Blender read), default weights 0 (= the neutral
-pose, see model.py), and an animation that replays one capture. The PCA targets are stored *scaled*: target_k = basis_k *
-range_k with range_k = the largest |weight| of component k over the captures, so every captured
+pose, see model.py), and an animation that replays one capture. The PCA targets are stored
+*scaled*: target_k = basis_k * range_k with range_k = the largest |weight| of component k over the captures, so every captured
 frame lies within weights -1..1 of the sliders (an orthonormal basis vector has unit norm over all
 3N coordinates, which would put useful weights in the tens or hundreds). Named shapes are stored
 at full strength (weight 1 = the peak of the expression).
 
-USD (``model.usdc``, binary; ``.usda`` for text; needs ``usd-core``): a UsdSkel skeleton-less blend shape rig — a Mesh bound
-to a SkelRoot/Skeleton with one UsdSkel.BlendShape per target and a SkelAnimation of the weights.
+USD (``model.usdc``, binary; ``.usda`` for text; needs ``usd-core``): a UsdSkel skeleton-less
+blend shape rig — a Mesh bound to a SkelRoot/Skeleton with one UsdSkel.BlendShape per target and a SkelAnimation of the weights.
 The stage states metersPerUnit = 1 (glTF's unit; without it tools assume centimetres and show a
 character 100x too small), the mesh carries its extent (the rest pose's box grown by every
 target's reach, so culling never clips a pose), displayColor is linear like glTF's COLOR_0, and a
