@@ -238,20 +238,30 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
         np.save(tmp_path / "videos" / name / "gt_vertices.npy", frames)
     with pytest.raises(UserError, match="no finished reconstructions"):
         blendshapes_command(tmp_path, components=100, source="vcdgs", semantic=True, animation=None, usd=False,
-                            fps=8.0, force=False)
+                            fps=8.0, force=False, arkit=True)
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False)
+                        fps=8.0, force=False, arkit=True)
     out = capsys.readouterr().out
     assert "gt captures" in out and "explained variance" in out
     model = load_model(tmp_path / "blendshapes" / "model.npz")
     assert model.semantic_names == ["blink", "smile", "tongue_out"]
     rig = load_mesh(tmp_path / "blendshapes" / "model.glb")
+    from t2bs.retarget.arkit import load_arkit_shapes
+
     visible = [model.names[k] for k in model.visible_components()]
     assert 0 < len(visible) < model.num_components  # the head turns' rounding residue is not exported
-    assert list(rig.morph_targets) == visible + model.semantic_names
+
+    arkit = load_arkit_shapes(tmp_path / "blendshapes" / "arkit.json", model.num_components)
+    assert "ARKit shapes:" in out and len(arkit.report) == 52 and "eyeBlinkLeft" in arkit.names
+    from PIL import Image
+
+    sheet = np.asarray(Image.open(tmp_path / "blendshapes" / "arkit_sheet.png"))  # neutral + up to 12 shapes, 4 a row
+    rows = -(-(1 + min(12, len(arkit.names))) // 4)
+    assert sheet.shape == (rows * 192, 4 * 192, 3) and (sheet[:192, 192:384] != sheet[:192, :192]).any()
+    assert list(rig.morph_targets) == arkit.names + model.semantic_names + visible
     assert (tmp_path / "blendshapes" / "done.json").exists()
     blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False)
+                        fps=8.0, force=False, arkit=True)
     assert "up to date" in capsys.readouterr().out
 
 

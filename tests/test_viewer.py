@@ -423,3 +423,30 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
     interior = ndimage.binary_erosion(drawn, iterations=2) & silhouette
     assert ((np.abs(capture - after).max(-1) > 40) & interior).sum() < 0.02 * n_diff
     assert n_images >= 1  # the input frame is in the panel
+
+
+def test_arkit_shapes_listed_first_and_grouped(project, tmp_path):
+    """With blendshapes/arkit.json the ARKit shapes come first (ARKit order, eyes/jaw folders), and a
+    Live Link style weights.csv (ARKit columns + head rotation) plays through them."""
+    from t2bs.project import write_json
+    from t2bs.retarget.arkit import ArkitShapes
+
+    root, info = project
+    copy = tmp_path / "proj"
+    shutil.copytree(root, copy)
+    k = info["basis"].shape[0]
+    w = np.zeros((2, k))
+    w[0, 0] = 0.5 * info["scale"][0]  # eyeBlinkLeft = half the brow bump (any shape: it is the grouping under test)
+    w[1, 1] = info["scale"][1]  # jawOpen = the fixture's jaw bump
+    write_json(copy / "blendshapes" / "arkit.json", ArkitShapes(["eyeBlinkLeft", "jawOpen"], w, {}).to_dict())
+    (copy / "retarget" / "take").mkdir(parents=True)
+    (copy / "retarget" / "take" / "weights.csv").write_text(
+        "frame,time,eyeBlinkLeft,jawOpen,headYaw,headPitch,headRoll\n0,0.0,0.0,0.0,0,0,0\n1,0.0167,1.0,0.5,0.1,0,0\n")
+    with ViewerApp(copy, port=0) as app:
+        assert app.shape_names == ["eyeBlinkLeft", "jawOpen", "jaw_open", "pc000", "pc001"]
+        assert [s.group for s in app.shapes[:2]] == ["arkit/eyes", "arkit/jaw"]
+        app.set_weights({"jawOpen": 1.0})
+        np.testing.assert_allclose(app.current_vertices(), info["neutral"] + info["scale"][1] * info["basis"][1], atol=1e-5)
+        ret = load_retarget(copy, "take", app.shapes)
+        assert ret.ignored == ["headYaw", "headPitch", "headRoll"]
+        np.testing.assert_allclose(ret.weights[1], [1.0, 0.5])

@@ -47,6 +47,9 @@ app.command("gallery")(_character.gallery_command)
 from t2bs.pipeline import create_command  # noqa: E402
 
 app.command("create")(create_command)
+from t2bs.blendshapes.export_cli import export_command  # noqa: E402
+
+app.command("export")(export_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
 from t2bs.eval.bench_raster import bench_raster_command  # noqa: E402
 

@@ -151,6 +151,11 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
                 ratio = np.asarray(data["explained_variance"], float)
                 blend["explained_variance_first10"] = [round(float(x), 4) for x in ratio[:10]]
                 blend["explained_variance_total"] = round(float(ratio.sum()), 6)
+    arkit_path = project.path("blendshapes", "arkit.json")
+    if arkit_path.exists():
+        arkit = read_json(arkit_path)
+        blend["arkit"] = arkit.get("names", [])
+        blend["arkit_absent"] = {n: r.get("why") for n, r in arkit.get("report", {}).items() if not r.get("present")}
     report = {
         "prompt": prompt,
         "preset": preset,
@@ -190,6 +195,16 @@ def _write_markdown(project: Project, report: dict) -> None:
     lines += ["", "## Blendshape model", "", f"{b.get('components', 0)} shapes in blendshapes/model.glb."]
     if "explained_variance_first10" in b:
         lines.append(f"Explained variance of the first shapes: {', '.join(f'{x:.3f}' for x in b['explained_variance_first10'])}.")
+    if "arkit" in b:
+        lines += ["", "## ARKit shapes", "", f"{len(b['arkit'])} of the 52 present: {', '.join(b['arkit']) or 'none'}.",
+                  "Absent, and why: blendshapes/arkit.json.", "", "![ARKit shapes](blendshapes/arkit_sheet.png)"]
+    lines += ["", "## Opening the rig", "",
+              f"- `t2bs view {project.root}`: sliders for the ARKit shapes (grouped), the named shapes and the PCA components.",
+              "- Blender: File > Import > glTF 2.0, pick blendshapes/model.glb; the shapes are the mesh's shape keys.",
+              "- three.js: `GLTFLoader` loads blendshapes/model.glb; `mesh.morphTargetDictionary` maps the names "
+              "(`jawOpen`, `eyeBlinkLeft`, ...) to `mesh.morphTargetInfluences`.",
+              f"- VRM (VTubing apps, three-vrm): `t2bs export {project.root} --format vrm --license CC-BY-4.0`.",
+              f"- Live Link Face capture: `t2bs retarget {project.root} --driver take.csv`."]
     with atomic_path(project.path("report.md")) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
 

@@ -8,7 +8,58 @@ function report(result) {
   document.getElementById("out").textContent = JSON.stringify(result, null, 2);
 }
 
-const url = new URLSearchParams(window.location.search).get("glb");
+const params = new URLSearchParams(window.location.search);
+const url = params.get("glb");
+
+function safeScreenshots(gltf, name) {
+  try {
+    return screenshots(gltf, name);
+  } catch (err) {
+    return { error: `WebGL screenshots failed: ${err && err.message ? err.message : err}` };
+  }
+}
+const shot = params.get("shot"); // a morph target name: render it at weight 0 and 1 (WebGL screenshots)
+
+// Frontal screenshots of the first morphing mesh with target ``name`` at 0 and at 1: the pipeline's
+// frontal camera (fov 30, distance 2.25, canonical frame), a key light + ambient, 256 px.
+function screenshots(gltf, name) {
+  let mesh = null;
+  gltf.scene.traverse((o) => { if (o.isMesh && o.morphTargetDictionary && name in o.morphTargetDictionary) mesh = o; });
+  if (!mesh) return { error: `no morph target ${name}` };
+  const size = 256;
+  const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+  renderer.setSize(size, size);
+  renderer.setClearColor(0xffffff, 1);
+  const scene = new THREE.Scene();
+  scene.add(gltf.scene);
+  scene.add(new THREE.AmbientLight(0xffffff, 1.2));
+  const key = new THREE.DirectionalLight(0xffffff, 2.0);
+  key.position.set(0.5, 1.0, 2.0);
+  scene.add(key);
+  const camera = new THREE.PerspectiveCamera(30, 1, 0.1, 10);
+  camera.position.set(0, 0, 2.25);
+  camera.lookAt(0, 0, 0);
+  const out = {};
+  const pixels = {};
+  for (const w of [0, 1]) {
+    mesh.morphTargetInfluences.fill(0);
+    mesh.morphTargetInfluences[mesh.morphTargetDictionary[name]] = w;
+    renderer.render(scene, camera);
+    out[w] = renderer.domElement.toDataURL("image/png");
+    const gl = renderer.getContext();
+    const buf = new Uint8Array(size * size * 4);
+    gl.readPixels(0, 0, size, size, gl.RGBA, gl.UNSIGNED_BYTE, buf);
+    pixels[w] = buf;
+  }
+  let changed = 0;
+  for (let i = 0; i < size * size; i++) {
+    const d = Math.abs(pixels[0][4 * i] - pixels[1][4 * i]) + Math.abs(pixels[0][4 * i + 1] - pixels[1][4 * i + 1]) + Math.abs(pixels[0][4 * i + 2] - pixels[1][4 * i + 2]);
+    if (d > 30) changed++;
+  }
+  let drawn = 0;
+  for (let i = 0; i < size * size; i++) if (pixels[0][4 * i] + pixels[0][4 * i + 1] + pixels[0][4 * i + 2] < 750) drawn++;
+  return { name, size, neutral: out[0], posed: out[1], changedPixels: changed, characterPixels: drawn };
+}
 if (!url) {
   report({ ok: false, error: "no ?glb= given" });
 } else {
@@ -40,7 +91,9 @@ if (!url) {
       } catch (err) {
         mixerOk = String(err);
       }
-      report({ ok: true, three: THREE.REVISION, meshes, clips, mixerOk });
+      const dictionaries = meshes.map((m) => m.targetNames);
+      report({ ok: true, three: THREE.REVISION, meshes, clips, mixerOk, dictionaries,
+               screenshots: shot ? safeScreenshots(gltf, shot) : null });
     },
     undefined,
     (err) => report({ ok: false, error: String(err && err.message ? err.message : err) }),

@@ -88,9 +88,10 @@ def blendshapes_command(
     source: str = typer.Option("auto", "--source", help="vcdgs: recon/*/vertices.npy; gt: videos/*/gt_vertices.npy; auto: vcdgs if present."),
     semantic: bool = typer.Option(True, "--semantic/--no-semantic", help="Add one named shape per expression prompt."),
     animation: Optional[str] = typer.Option(None, "--animation", help="Video id replayed by model.glb (default: the capture that moves most)."),
-    usd: bool = typer.Option(False, "--usd", help="Also write model.usda (UsdSkel blend shapes; needs usd-core)."),
+    usd: bool = typer.Option(False, "--usd", help="Also write model.usdc (binary USD, UsdSkel blend shapes; needs usd-core)."),
     fps: float = typer.Option(8.0, "--fps", help="Frame rate of the exported animation."),
     force: bool = typer.Option(False, "--force", help="Rebuild even if the inputs did not change."),
+    arkit: bool = typer.Option(True, "--arkit/--no-arkit", help="Derive the ARKit-52 named shapes (needs the 20 landmarks; docs/ARKIT.md)."),
 ) -> None:
     """PCA blendshape model of every captured frame -> DIR/blendshapes/model.npz + model.glb (paper §3.3)."""
     from t2bs.blendshapes.export import export_glb, export_usd
@@ -104,7 +105,8 @@ def blendshapes_command(
         raise UserError(f"{project_dir}: no such project folder")
     character = project.load_character()
     captures, expressions, files, used = load_captures(project.root, source)
-    config = {"components": components, "source": used, "semantic": semantic, "animation": animation, "usd": usd, "fps": fps}
+    config = {"components": components, "source": used, "semantic": semantic, "animation": animation, "usd": usd, "fps": fps,
+              "arkit": arkit}
     out = project.path("blendshapes")
     key = content_key(config, project.mesh_path, *files)
     if not force and is_done(out, key) and (out / "model.npz").exists() and (out / "model.glb").exists():
@@ -123,10 +125,11 @@ def blendshapes_command(
         raise UserError(f"--animation {animation!r}: no such capture; have {', '.join(sorted(captures))}")
     replay = animation or max(captures, key=lambda v: float(np.abs(captures[v] - character.vertices).max()))
     save_model(model, out / "model.npz")
-    export_glb(model, character, out / "model.glb", capture=replay, fps=fps)
+    shapes = _arkit_shapes(project, model, character) if arkit else None
+    export_glb(model, character, out / "model.glb", capture=replay, fps=fps, arkit=shapes)
     if usd:
         try:
-            export_usd(model, character, out / "model.usda", capture=replay, fps=fps)
+            export_usd(model, character, out / "model.usdc", capture=replay, fps=fps, arkit=shapes)
         except ImportError:
             raise UserError("--usd needs usd-core: pip install usd-core") from None
     ev = model.explained_variance
@@ -136,6 +139,7 @@ def blendshapes_command(
         "components": model.num_components, "visible_components": int(len(model.visible_components())),
         "explained_variance": ev, "cumulative": cum,
         "semantic": dict(zip(model.semantic_names, model.semantic_sources)), "animation": replay,
+        "arkit": shapes.names if shapes is not None else None,
         "seconds": round(time.time() - t0, 2),
     }
     write_json(out / "stats.json", stats)
@@ -149,6 +153,29 @@ def blendshapes_command(
           + ", ".join(f"{k}: {v:.4f}" for k, v in at.items())
           + (f"; named: {', '.join(model.semantic_names)}" if model.semantic_names else ""))
     print(f"wrote {out / 'model.npz'} and {out / 'model.glb'} (animation: {replay})")
+
+
+def _arkit_shapes(project, model, character):
+    """ARKit shapes of the freshly saved model -> blendshapes/arkit.json; None (said in one line) when
+    the character has no landmarks to derive them from."""
+    from t2bs.project import write_json
+    from t2bs.retarget.arkit import project_arkit_shapes, summary
+
+    path = project.path("blendshapes", "arkit.json")
+    try:
+        shapes = project_arkit_shapes(project.root, model, character)
+    except UserError as exc:
+        path.unlink(missing_ok=True)
+        print(f"blendshapes: no ARKit shapes ({exc})", file=sys.stderr)
+        return None
+    write_json(path, shapes.to_dict())
+    print(f"blendshapes: {summary(shapes)} (why each: {path})")
+    if shapes.names:
+        from t2bs.project import write_image
+        from t2bs.retarget.arkit import contact_sheet
+
+        write_image(project.path("blendshapes", "arkit_sheet.png"), contact_sheet(model, character, shapes))
+    return shapes
 
 
 # ---------------------------------------------------------------- benchmark captures

@@ -32,9 +32,9 @@ from t2bs.errors import UserError
 
 MODEL_VERSION = 2
 # A component is visible when, at its observed extreme, some vertex moves by this fraction of the bounding-box
-# diagonal: 0.25 % is about one pixel of a head filling a 512 px render (the paper's renders). Chosen from that
-# pixel size, not from any asset.
-VISIBLE_FRACTION = 0.0025
+# diagonal: 0.2 % is about one pixel of the 512 px frontal render (the paper's renders). Chosen from that pixel
+# size, not from any asset.
+VISIBLE_FRACTION = 0.002
 
 
 @dataclass
@@ -92,9 +92,13 @@ class BlendshapeModel:
         return apply_rigid_frames(*self.head_tracks[video_id], verts).astype(np.float32)
 
     def visible_components(self) -> np.ndarray:
-        """[K'] indices of the components that move something visible (all of them for a model without flags)."""
+        """[K'] indices of the components that move something visible: at the largest weight the captures gave it,
+        some vertex moves by >= VISIBLE_FRACTION of the diagonal (``visible``, computed here for older files)."""
         if self.visible is None:
-            return np.arange(self.num_components)
+            if not self.capture_weights:
+                return np.arange(self.num_components)
+            w = np.abs(np.concatenate([np.asarray(v) for v in self.capture_weights.values()])).max(0)  # [K]
+            return np.flatnonzero(_peak_offsets(self.basis, w) >= VISIBLE_FRACTION * _diagonal(self.neutral))
         return np.flatnonzero(self.visible)
 
     def semantic_offsets(self) -> np.ndarray:
@@ -177,10 +181,7 @@ def build_model(
     extreme = weights[np.abs(weights).argmax(0), np.arange(k)]  # [K]
     flip = np.where(extreme < 0, -1.0, 1.0)
     vt, weights = vt * flip[:, None], weights * flip[None]
-    # Visible: the largest vertex offset of the component at its observed extreme.
-    diag = float(np.linalg.norm(neutral.max(0) - neutral.min(0)))
-    peak = np.linalg.norm(vt.reshape(k, n, 3), axis=-1).max(1) * np.abs(weights).max(0)  # [K]
-    visible = peak >= VISIBLE_FRACTION * diag
+    visible = _peak_offsets(vt.reshape(k, n, 3), np.abs(weights).max(0)) >= VISIBLE_FRACTION * _diagonal(neutral)
     split = np.split(weights, np.cumsum(lengths)[:-1])
     return BlendshapeModel(
         neutral=neutral,
@@ -195,6 +196,16 @@ def build_model(
         visible=visible,
         head_tracks=head_tracks,
     )
+
+
+def _diagonal(points: np.ndarray) -> float:
+    p = np.asarray(points, np.float64)
+    return float(np.linalg.norm(p.max(0) - p.min(0)))
+
+
+def _peak_offsets(basis: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """[K] the largest vertex offset of each component ``basis`` [K, N, 3] at weight ``weights`` [K]."""
+    return np.linalg.norm(np.asarray(basis, np.float64), axis=-1).max(1) * np.asarray(weights, np.float64)
 
 
 def _svd_rows(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,7 +4,12 @@ trimesh drops glTF morph targets, so glTF is read here: every mesh primitive rea
 default scene is transformed by its node's world matrix and merged, one part label per primitive
 (the node or mesh name). Saving writes one primitive with POSITION, NORMAL, COLOR_0 or
 TEXCOORD_0 + an embedded PNG, named morph targets (mesh.extras.targetNames, the convention
-three.js and Blender read) and, optionally, a morph-weight animation.
+three.js and Blender read) with POSITION and NORMAL deltas and, optionally, a morph-weight animation.
+
+Colour spaces: ``Mesh.vertex_colors`` hold display (sRGB) values, like the texture's pixels, because
+that is what the renders and the videos compare against. glTF defines COLOR_0 as *linear* RGB
+(three.js and Blender apply the sRGB curve on output), so COLOR_0 is written linear and converted
+back to sRGB on reading; writing the sRGB values raw made every consumer show a washed-out character.
 """
 
 from __future__ import annotations
@@ -47,12 +52,27 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     return mesh.validate(str(path))
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """Display (sRGB, 0..1) colours -> linear RGB (the IEC 61966-2-1 curve), float32."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear RGB (0..1) -> display (sRGB) colours, float32; the inverse of ``srgb_to_linear``."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
 # ---------------------------------------------------------------------------------- glTF read
 
 
 def _load_gltf(path: Path) -> Mesh:
     try:
-        gltf = pygltflib.GLTF2().load(str(path))
+        # pygltflib picks binary vs JSON by the suffix; a .vrm is a binary glTF under another name.
+        with open(path, "rb") as f:
+            binary = f.read(4) == b"glTF"
+        gltf = pygltflib.GLTF2().load_binary(str(path)) if binary else pygltflib.GLTF2().load_json(str(path))
     except Exception as exc:  # pygltflib raises many types on garbage input
         raise UserError(f"{path}: not a readable glTF/GLB file ({type(exc).__name__})") from None
     if gltf is None or not gltf.meshes:
@@ -197,9 +217,9 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
                     texture = np.clip(texture * factor, 0, 255).astype(np.uint8)
     if texture is None:
         if attrs.COLOR_0 is not None:
-            colors = _read_accessor(gltf, buffers, attrs.COLOR_0)[:, :3].astype(np.float32)
-        else:
-            colors = np.tile(factor.astype(np.float32), (len(vertices), 1))
+            colors = linear_to_srgb(_read_accessor(gltf, buffers, attrs.COLOR_0)[:, :3])
+        else:  # baseColorFactor is linear too
+            colors = np.tile(linear_to_srgb(factor), (len(vertices), 1))
     return Mesh(vertices.astype(np.float32), faces.astype(np.int32), colors, uv, texture, morphs)
 
 
@@ -255,7 +275,8 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, animation: dict | None = None
     """Write ``mesh`` to .glb (morph targets, texture, optional animation) or .ply, atomically.
 
     ``animation``: {"times": [T] seconds, "weights": [T, M] morph weights in target order,
-    "name": str} adds a glTF animation driving the morph weights.
+    "name": str} adds a glTF animation driving the morph weights; optional "rotation": [T, 4]
+    unit quaternions (x, y, z, w) and "translation": [T, 3] animate the node rigidly (a head turn).
     """
     from t2bs.project import atomic_path
 
@@ -317,7 +338,7 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
     b = _BinaryBuilder(gltf)
     attrs = pygltflib.Attributes(
         POSITION=b.accessor(mesh.vertices.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
-        NORMAL=b.accessor(vertex_normals(mesh.vertices, mesh.faces), "VEC3", pygltflib.ARRAY_BUFFER),
+        NORMAL=b.accessor(vertex_normals(mesh.vertices, mesh.faces).astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER),
     )
     material = pygltflib.Material(name="character", doubleSided=True, pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(metallicFactor=0.0, roughnessFactor=1.0))
     if mesh.texture is not None and mesh.uv is not None:
@@ -329,10 +350,16 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
         gltf.textures = [pygltflib.Texture(source=0, sampler=0)]
         material.pbrMetallicRoughness.baseColorTexture = pygltflib.TextureInfo(index=0)
     else:
-        rgba = np.concatenate([mesh.vertex_rgb(), np.ones((mesh.num_vertices, 1), np.float32)], 1)
+        rgba = np.concatenate([srgb_to_linear(mesh.vertex_rgb()), np.ones((mesh.num_vertices, 1), np.float32)], 1)
         attrs.COLOR_0 = b.accessor(rgba.astype(np.float32), "VEC4", pygltflib.ARRAY_BUFFER)
+    # Normal deltas: without them a consumer lights every pose with the neutral's normals (an open
+    # jaw or a closed lid keeps the neutral shading). Delta = normals of the fully applied target
+    # minus the neutral's; consumers renormalise after blending.
+    n0 = vertex_normals(mesh.vertices, mesh.faces)
     targets = [
-        {"POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True)}
+        {"POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
+         "NORMAL": b.accessor((vertex_normals(mesh.vertices + d, mesh.faces) - n0).astype(np.float32), "VEC3",
+                              pygltflib.ARRAY_BUFFER)}
         for d in mesh.morph_targets.values()
     ]
     prim = pygltflib.Primitive(
@@ -357,13 +384,18 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
             raise ValueError(f"animation weights must be [T={len(times)}, M={len(targets)}], got {weights.shape}")
         t_acc = b.accessor(times, "SCALAR", bounds=True)
         w_acc = b.accessor(weights.reshape(-1), "SCALAR")
-        gltf.animations = [
-            pygltflib.Animation(
-                name=animation.get("name", "capture"),
-                samplers=[pygltflib.AnimationSampler(input=t_acc, output=w_acc, interpolation="LINEAR")],
-                channels=[pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))],
-            )
-        ]
+        samplers = [pygltflib.AnimationSampler(input=t_acc, output=w_acc, interpolation="LINEAR")]
+        channels = [pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))]
+        for key, kind in (("rotation", "VEC4"), ("translation", "VEC3")):
+            if animation.get(key) is None:
+                continue
+            values = np.asarray(animation[key], dtype=np.float32)
+            if values.shape != (len(times), 4 if kind == "VEC4" else 3):
+                raise ValueError(f"animation {key} must be [T={len(times)}, {4 if kind == 'VEC4' else 3}], got {values.shape}")
+            samplers.append(pygltflib.AnimationSampler(input=t_acc, output=b.accessor(values, kind), interpolation="LINEAR"))
+            channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1,
+                                                       target=pygltflib.AnimationChannelTarget(node=0, path=key)))
+        gltf.animations = [pygltflib.Animation(name=animation.get("name", "capture"), samplers=samplers, channels=channels)]
     gltf.buffers = [pygltflib.Buffer(byteLength=len(b.blob))]
     gltf.set_binary_blob(bytes(b.blob))
     return gltf

@@ -88,14 +88,18 @@ def _side_by_side(driver: np.ndarray, char: np.ndarray) -> np.ndarray:
 
 def retarget_command(
     project_dir: Path = typer.Argument(..., help="project folder (character/mesh.glb, blendshapes/model.npz)"),
-    driver: Path = typer.Option(..., "--driver", help="human face video file or folder of images"),
+    driver: Path = typer.Option(..., "--driver", help="human face video file, folder of images, or Live Link Face .csv"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder (default DIR/retarget/<driver name>)"),
     neutral_frame: Optional[int] = typer.Option(None, "--neutral-frame", help="index of the neutral frame (default: detected)"),
     smooth: float = typer.Option(1.0, "--smooth", help="temporal smoothing of the landmarks, sigma in frames (0 = off)"),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="use at most this many frames"),
     size: int = typer.Option(256, "--size", help="preview video height in pixels"),
 ) -> None:
-    """Drive the character's blendshape model with a human face video (MediaPipe + landmark solve)."""
+    """Drive the character's blendshape model with a human face video (MediaPipe + landmark solve)
+    or a Live Link Face CSV (its ARKit weights drive the rig's ARKit shapes directly)."""
+    if driver.suffix.lower() == ".csv":
+        retarget_from_csv(project_dir, driver, out, max_frames, size)
+        return
     from t2bs.geometry.camera import frontal_camera
     from t2bs.geometry.io import save_mesh
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -155,6 +159,80 @@ def retarget_command(
     project.record_stage("retarget", backend="mediapipe-0.10.21", config={"driver": str(driver), "smooth": smooth,
                                                                           "neutral_frame": track.neutral})
     print(f"retargeted {len(frames)} frames -> {out}/weights.csv, animation.glb, preview.mp4")
+
+
+def _head_pivot(vertices: np.ndarray) -> np.ndarray:
+    """[3] point the head turns about: under the head's centre, at the bottom of the mesh (the neck)."""
+    return np.array([vertices[:, 0].mean(), vertices[:, 1].min(), vertices[:, 2].mean()])
+
+
+def retarget_from_csv(project_dir: Path, driver: Path, out: Optional[Path] = None, max_frames: Optional[int] = None,
+                      size: int = 256) -> Path:
+    """Live Link Face CSV -> DIR/retarget/<name>/weights.csv (the ARKit weights the rig has), animation.glb
+    (ARKit morph targets + the head rotation as node motion), preview.mp4, report.json."""
+    from scipy.spatial.transform import Rotation
+
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.geometry.io import save_mesh
+    from t2bs.project import atomic_path
+    from t2bs.render.mesh_renderer import MeshRenderer
+    from t2bs.retarget.arkit import load_arkit_shapes
+    from t2bs.retarget.livelink import head_rotations, read_livelink_csv
+
+    t0 = time.perf_counter()
+    project, mesh = _load_character(project_dir)
+    model = _load_model(project, required=True)
+    if model.num_vertices != mesh.num_vertices:
+        raise UserError(f"blendshape model has {model.num_vertices} vertices but the character has {mesh.num_vertices}")
+    capture = read_livelink_csv(driver)
+    shapes = load_arkit_shapes(project.path("blendshapes", "arkit.json"), model.num_components)
+    if shapes is None or not shapes.names:
+        raise UserError(f"{project.path()}: the rig has no ARKit shapes (blendshapes/arkit.json); "
+                        f"rebuild with `t2bs blendshapes {project_dir} --arkit`")
+    used = [n for n in shapes.names if n in capture.weights]
+    if not used:
+        raise UserError(f"{driver}: none of its shapes is on this rig (rig has {', '.join(shapes.names[:6])}, ...)")
+    unused = [n for n in capture.weights if n not in shapes.names and np.abs(capture.weights[n]).max() > 0]
+    if unused:
+        print(f"note: {len(unused)} CSV shapes are absent on this rig and do not move it: {', '.join(unused)} "
+              f"(why: blendshapes/arkit.json)")
+    n = len(capture.times) if max_frames is None else min(max_frames, len(capture.times))
+    times, head = capture.times[:n], capture.head[:n]
+    w = np.stack([capture.weights[name][:n] for name in used], 1)  # [T, S] the CSV's own weights
+    sel = [shapes.names.index(name) for name in used]
+    basis_w = w @ shapes.weights[sel]  # [T, K] the same pose in the model's basis
+    offsets = model.offsets(shapes.weights[sel]).astype(np.float32)  # [S, N, 3]
+    out = Path(out) if out is not None else project.path("retarget", driver.stem)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "weights.csv") as tmp, open(tmp, "w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow(["frame", "time"] + used + ["headYaw", "headPitch", "headRoll"])
+        for t in range(n):
+            wr.writerow([t, f"{times[t]:.4f}"] + [f"{x:.6f}" for x in w[t]] + [f"{x:.6f}" for x in head[t]])
+    rig = mesh.with_vertices(model.neutral)
+    rig.morph_targets = dict(zip(used, offsets))
+    rot = head_rotations(head)  # [T, 3, 3]
+    pivot = _head_pivot(model.neutral)
+    trans = pivot[None] - np.einsum("tij,j->ti", rot, pivot)  # v' = R v + (p - R p): turn about the pivot
+    save_mesh(rig, out / "animation.glb", animation={
+        "times": times.astype(np.float32), "weights": w.astype(np.float32), "name": f"livelink:{driver.name}",
+        "rotation": Rotation.from_matrix(rot).as_quat().astype(np.float32), "translation": trans.astype(np.float32)})
+    import imageio.v2 as imageio
+
+    cam = frontal_camera(size)
+    verts = model.vertices(basis_w).astype(np.float64)  # [T, N, 3]
+    verts = np.einsum("tij,tnj->tni", rot, verts) + trans[:, None, :]
+    rate = float(1.0 / np.median(np.diff(times))) if n > 1 else capture.fps  # samples per second (60 for the app)
+    with MeshRenderer() as renderer, imageio.get_writer(out / "preview.mp4", fps=rate, macro_block_size=1) as writer:
+        for t in tqdm(range(n), desc="preview", unit="frame"):
+            writer.append_data((renderer.render(rig, cam, vertices=verts[t].astype(np.float32)).rgb * 255 + 0.5).astype(np.uint8))
+    write_json(out / "report.json", {"driver": str(driver), "kind": "livelink-csv", "frames": n, "rate_hz": round(rate, 3), "timecode_fps": capture.fps,
+                                     "shapes_used": used, "shapes_absent_on_rig": unused,
+                                     "seconds": round(time.perf_counter() - t0, 2)})
+    project.record_stage("retarget", backend="livelink-csv", config={"driver": str(driver), "max_frames": max_frames})
+    print(f"retargeted {n} frames at {rate:.0f} Hz ({len(used)} ARKit shapes) -> "
+          f"{out}/weights.csv, animation.glb, preview.mp4")
+    return out
 
 
 def bench_retarget(

@@ -44,8 +44,11 @@ class RetargetSolver:
     """Precomputed linear pieces of the objective for one model + landmark set (state: caches)."""
 
     def __init__(self, neutral: np.ndarray, basis: np.ndarray, faces: np.ndarray, landmark_ids: np.ndarray,
-                 eyeballs: dict | None = None, config: SolveConfig = SolveConfig()):
+                 eyeballs: dict | None = None, config: SolveConfig = SolveConfig(), prior: np.ndarray | None = None):
         self.config = config
+        # [K] relative ridge per weight (default 1 = plain Tikhonov); e.g. (s_0 / s_k)^2 makes
+        # components the captures rarely use expensive (a Gaussian prior from the PCA).
+        self.prior = np.ones(np.asarray(basis).shape[0]) if prior is None else np.asarray(prior, np.float64)
         self.neutral = np.asarray(neutral, np.float64)  # [N, 3]
         self.basis = np.asarray(basis, np.float64)  # [K, N, 3]
         self.k = self.basis.shape[0]
@@ -144,7 +147,7 @@ class RetargetSolver:
             target_gap = self.gap0 * np.asarray(eye_openness, np.float64)
             h = h + c.eye_gap_weight * self.a_gap.T @ self.a_gap
             g = g + c.eye_gap_weight * self.a_gap.T @ (target_gap - self.gap0)
-        ridge = c.ridge * max(float(np.abs(np.diag(h)).max()), 1e-12) * np.eye(self.k)
+        ridge = c.ridge * max(float(np.abs(np.diag(h)).max()), 1e-12) * np.diag(self.prior)
         w = self._w
         i, j = self.edges[:, 0], self.edges[:, 1]
         n_e = len(self.edges)

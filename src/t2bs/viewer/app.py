@@ -38,6 +38,7 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
 from t2bs.geometry.mesh import Mesh, vertex_normals
+from t2bs.geometry.io import srgb_to_linear
 
 TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
 FRAME_COLUMNS = ("frame", "index", "frame_index")  # weights.csv: row index, ignored for timing
@@ -56,7 +57,7 @@ class Shape:
     """One slider: vertex offsets at value 1, and the slider's range."""
 
     name: str  # unique key used by set_weights (PCA "pc000", semantic "jaw_open", rig "rig:smile")
-    group: str  # "semantic" | "pca" | "rig": the GUI folder it lives in
+    group: str  # "arkit/<eyes|brows|jaw|mouth|cheeks|nose|tongue>" | "semantic" | "pca" | "rig": its GUI folder
     offsets: np.ndarray  # [N, 3] float32 displacement per unit of the slider
     lo: float  # slider minimum
     hi: float  # slider maximum
@@ -83,12 +84,6 @@ class Retarget:
     def note(self) -> str:
         """Shown under the retargeting panel's slider."""
         return f"ignored columns: {', '.join(self.ignored)}" if self.ignored else ""
-
-
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """glTF vertex colours are linear; the mesh stores display (sRGB) colours."""
-    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def load_character(root: Path) -> Mesh:
@@ -126,8 +121,14 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
     if model.num_vertices != n:
         raise UserError(f"{path}: model has {model.num_vertices} vertices but the character mesh has {n}")
     shapes: list[Shape] = []
-    # Named shapes first (what a user reaches for), read defensively: older files may carry only
-    # the offsets, or nothing.
+    # ARKit shapes first (the names capture apps and engines speak), grouped like Apple's list.
+    from t2bs.retarget.arkit import ARKIT_GROUP_OF, load_arkit_shapes
+
+    arkit = load_arkit_shapes(root / "blendshapes" / "arkit.json", model.num_components)
+    if arkit is not None and arkit.names:
+        for name, off in zip(arkit.names, model.offsets(arkit.weights)):
+            shapes.append(Shape(name, f"arkit/{ARKIT_GROUP_OF[name]}", off.astype(np.float32), 0.0, 1.0))
+    # Then the prompt-named shapes, read defensively: older files may carry only the offsets, or nothing.
     sem_names = list(model.semantic_names)
     sem_off = model.semantic_offsets() if model.semantic_weights is not None else None
     if sem_names and (sem_off is None or sem_off.shape[0] != len(sem_names)):
@@ -146,8 +147,9 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
     if len(set(names)) != len(names):
         dup = sorted({x for x in names if names.count(x) > 1})
         raise UserError(f"{path}: blendshape names are not unique ({', '.join(dup)})")
-    what = (f"{len(model.visible_components())} of {model.num_components} PCA components (the visible ones), "
-            f"{len([s for s in shapes if s.group == 'semantic'])} named shapes")
+    what = (f"{len([s for s in shapes if s.group.startswith('arkit/')])} ARKit shapes, "
+            f"{len([s for s in shapes if s.group == 'semantic'])} named shapes, "
+            f"{len(model.visible_components())} of {model.num_components} PCA components (the visible ones)")
     return model.neutral.astype(np.float32), shapes, what
 
 
@@ -336,7 +338,7 @@ class ViewerApp:
         n = self.mesh.num_vertices
         self.faces = self.mesh.faces.astype(np.int64)
         self.colors = self.mesh.vertex_rgb().astype(np.float32)  # [N, 3] display colours
-        self._colors_linear = _srgb_to_linear(self.colors)
+        self._colors_linear = srgb_to_linear(self.colors)
         self._stack = (np.stack([s.offsets for s in self.shapes]).reshape(len(self.shapes), -1)
                        if self.shapes else np.zeros((0, n * 3), np.float32))  # [M, 3N]
         self._sigma = vertex_splat_sigma(self.neutral, self.faces)
@@ -549,18 +551,32 @@ class ViewerApp:
             if not self.shapes:
                 gui.add_markdown("No blendshapes (run `t2bs blendshapes DIR`).")
             self._sliders: list = [None] * len(self.shapes)  # slider i drives shape i
+            from t2bs.retarget.arkit import ARKIT_GROUPS
+
+            arkit = [(i, s) for i, s in enumerate(self.shapes) if s.group.startswith("arkit/")]
+            if arkit:
+                with gui.add_folder(f"ARKit ({len(arkit)} of 52)"):
+                    for sub in ARKIT_GROUPS:
+                        members = [(i, s) for i, s in arkit if s.group == f"arkit/{sub}"]
+                        if members:
+                            with gui.add_folder(sub, expand_by_default=sub in ("eyes", "jaw")):
+                                self._add_sliders(members)
             titles = {"semantic": "Named shapes", "pca": "PCA components", "rig": "Character rig"}
             for group in ("semantic", "pca", "rig"):
                 members = [(i, s) for i, s in enumerate(self.shapes) if s.group == group]
                 if not members:
                     continue
                 with gui.add_folder(titles[group], expand_by_default=group != "pca" or len(members) <= 12):
-                    for i, s in members:
-                        label = s.name[4:] if group == "rig" else s.name
-                        step = float(f"{(s.hi - s.lo) / 200:.2g}") or 1e-3
-                        h = gui.add_slider(label, min=s.lo, max=s.hi, step=step, initial_value=0.0)
-                        h.on_update(self._slider_callback(i))
-                        self._sliders[i] = h
+                    self._add_sliders(members, strip="rig:" if group == "rig" else "")
+
+    def _add_sliders(self, members: list, strip: str = "") -> None:
+        """One slider per (index, Shape) in the current GUI folder."""
+        for i, s in members:
+            label = s.name[len(strip):] if strip and s.name.startswith(strip) else s.name
+            step = float(f"{(s.hi - s.lo) / 200:.2g}") or 1e-3
+            h = self.server.gui.add_slider(label, min=s.lo, max=s.hi, step=step, initial_value=0.0)
+            h.on_update(self._slider_callback(i))
+            self._sliders[i] = h
 
     def _add_timeline(self, kind: str, title: str, folder: str, labels: tuple[str, str, str], names: list[str],
                       empty: str, image: bool = False) -> Timeline:

@@ -1,0 +1,98 @@
+"""ARKit-52 named shapes derived through retargeting (issue 38), against facecap's own ARKit shapes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from t2bs.retarget.arkit import ARKIT_GROUPS, ARKIT_NAMES, arkit_name, derive_arkit_shapes, load_reference
+
+FACECAP = Path(__file__).resolve().parents[1].parent / "shared" / "assets" / "facecap.glb"
+
+
+def test_names_and_reference_table():
+    assert len(ARKIT_NAMES) == 52 == len(set(ARKIT_NAMES))
+    assert list(ARKIT_GROUPS) == ["eyes", "brows", "jaw", "mouth", "cheeks", "nose", "tongue"]
+    assert arkit_name("eyeBlink_L") == arkit_name("EyeBlinkLeft") == "eyeBlinkLeft"  # ICT/facecap, Live Link Face
+    assert arkit_name("mouthSmile_R") == "mouthSmileRight" and arkit_name("TongueOut") == "tongueOut"
+    assert arkit_name("HeadYaw") is None and arkit_name("blink") is None
+    neutral, shapes = load_reference()
+    assert neutral.shape == (20, 3) and len(shapes) == 51 and "tongueOut" not in shapes
+    # The subject's left eye is at +X (68-scheme 42-47 = positions 6-11), and eyeBlinkLeft closes it alone.
+    assert neutral[6:12, 0].min() > 0 > neutral[0:6, 0].max()
+    blink = shapes["eyeBlinkLeft"]
+    assert np.abs(blink[6:12]).max() > 0.5 and np.abs(blink[:6]).max() < 1e-3
+    assert blink[7, 1] < -0.3 and blink[8, 1] < -0.3  # upper lid (43, 44) comes down
+    assert shapes["jawOpen"][18, 1] < -1.0  # lower inner lip (66) drops
+
+
+@pytest.fixture(scope="module")
+def facecap():
+    from t2bs.geometry.io import load_mesh
+    from t2bs.geometry.mesh import normalize
+    from t2bs.retarget.bench import morph_model
+    from t2bs.retarget.landmarks import detect_landmarks
+
+    if not FACECAP.exists():
+        pytest.skip(f"shared asset {FACECAP} not present")
+    mesh, _ = normalize(load_mesh(FACECAP))
+    model = morph_model(mesh)
+    lm, _ = detect_landmarks(mesh, "motion", model=model)
+    return mesh, model, lm
+
+
+def _derive(model, mesh, lm):
+    return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
+                               lm.regions.get("mouth", {}).get("width_world"))
+
+
+def test_derived_shapes_match_facecaps_own(facecap):
+    mesh, model, lm = facecap
+    shapes = _derive(model, mesh, lm)
+    assert set(shapes.report) == set(ARKIT_NAMES)
+    assert {"eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft", "mouthSmileRight", "mouthPucker"} <= set(shapes.names)
+    assert not shapes.report["browInnerUp"]["present"] and "cannot see" in shapes.report["browInnerUp"]["why"]
+    assert not shapes.report["tongueOut"]["present"] and "reference" in shapes.report["tongueOut"]["why"]
+    truth = {arkit_name(n): d.reshape(-1).astype(np.float64) for n, d in mesh.morph_targets.items()}
+    cos = {}
+    for name, w in zip(shapes.names, shapes.weights):
+        d = model.offsets(w).reshape(-1)
+        cos[name] = float(d @ truth[name] / (np.linalg.norm(d) * np.linalg.norm(truth[name])))
+    assert np.median(list(cos.values())) > 0.68  # measured 0.724 (benchmarks/arkit_facecap.py)
+    assert cos["jawOpen"] > 0.95 and cos["eyeBlinkLeft"] > 0.7 and cos["mouthSmileLeft"] > 0.75
+    # Left is the character's own left (+X): eyeBlinkLeft moves the +X eye far more than the -X one.
+    d = np.linalg.norm(model.offsets(shapes.weights[shapes.names.index("eyeBlinkLeft")]), axis=1)
+    x = model.neutral[:, 0]
+    assert d[x > 0].max() > 5 * d[x < 0].max()
+
+
+def test_a_rig_that_only_blinks_both_eyes_has_no_one_eyed_blink(facecap):
+    from t2bs.blendshapes.model import build_model
+
+    mesh, _, lm = facecap
+    v0 = mesh.vertices.astype(np.float64)
+    ramp = np.sin(np.linspace(0, np.pi, 12))[:, None, None]
+    both = mesh.morph_targets["eyeBlink_L"] + mesh.morph_targets["eyeBlink_R"]
+    caps = {"blink": v0 + ramp * both, "jaw": v0 + ramp * mesh.morph_targets["jawOpen"]}
+    model = build_model(mesh.vertices, {k: v.astype(np.float32) for k, v in caps.items()})
+    shapes = _derive(model, mesh, lm)
+    assert "jawOpen" in shapes.names
+    for side in ("eyeBlinkLeft", "eyeBlinkRight"):
+        r = shapes.report[side]
+        assert not r["present"] and "captures cannot express" in r["why"] and r["crosstalk"] > 0.6  # both eyes move
+
+
+def test_report_lists_arkit_shapes_and_how_to_open_the_rig(tmp_path):
+    from t2bs.pipeline import write_report
+    from t2bs.project import Project, write_json
+    from t2bs.retarget.arkit import ArkitShapes
+
+    report = {"jawOpen": {"present": True, "why": "derived"}, "browInnerUp": {"present": False, "why": "cannot see it"}}
+    write_json(tmp_path / "blendshapes" / "arkit.json", ArkitShapes(["jawOpen"], np.ones((1, 2)), report).to_dict())
+    out = write_report(Project(tmp_path), "a fox", "quick", {"blendshapes": 1.0})
+    assert out["blendshapes"]["arkit"] == ["jawOpen"] and out["blendshapes"]["arkit_absent"] == {"browInnerUp": "cannot see it"}
+    md = (tmp_path / "report.md").read_text()
+    assert "1 of the 52 present: jawOpen." in md and "![ARKit shapes](blendshapes/arkit_sheet.png)" in md
+    assert "Blender: File > Import > glTF 2.0" in md and "--format vrm" in md and "t2bs view" in md
