@@ -101,3 +101,113 @@ def test_one_pass_is_seeded_and_uses_every_condition(tiny_ckpt):
     assert images.shape == (T * V, 3, H, H) and float(images.min()) >= 0 and float(images.max()) <= 1
     with pytest.raises(UserError, match=f"makes {T} frames per pass"):
         model.conditioning(motion[:1], views, polar, azim)
+
+
+def test_plan_covers_the_grid_with_anchored_passes():
+    passes = sv4d2.plan_passes(21, [0, 1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 13, 14], 12, 4)
+    assert [p.frames[0] for p in passes[:2]] == [0, 9] and passes[1].frames[-1] == 20
+    assert [p.views for p in passes[::2]] == [[0, 1, 2, 3], [4, 5, 6, 8], [9, 10, 11, 12], [11, 12, 13, 14]]
+    covered = {(v, t) for p in passes for v in p.views for t in p.frames}
+    assert covered == {(v, t) for v in [0, 1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 13, 14] for t in range(21)}
+    for p in passes:  # every pass starts from a frame already made (the renders at 0, else an earlier pass)
+        assert p.anchor == p.frames[0]
+    long = sv4d2.plan_passes(40, [0, 1, 2, 3], 12, 4)
+    assert [p.frames[0] for p in long] == [0, 11, 22, 28]
+    with pytest.raises(UserError, match="12 frames per pass: the input video has 9 frames"):
+        sv4d2.plan_passes(9, [0, 1, 2, 3], 12, 4)
+
+
+def _tiny_project(tmp_path, frames: int = 5):
+    """A rendered sphere (5 orbit views, 32 px, unlit) with a one-view fixed-view video for 'blinking'."""
+    from test_recon import sphere_mesh
+
+    from t2bs.commands_render import RenderConfig, render_project
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.project import Project
+    from t2bs.video.cogvideox import fixed_view_grid
+    from t2bs.video.grid import read_rgb, save_grid
+
+    project = Project(tmp_path / "proj")
+    render_project(sphere_mesh(1), project.root, {"backend": "file"}, RenderConfig(size=32, views=5, shading="unlit"))
+    front = read_rgb(project.path("renders", "front.png"))
+    rng = np.random.default_rng(0)
+    video = np.stack([np.roll(front, t, axis=1) for t in range(frames)])  # the "expression": a slide
+    video[1:, :2, :2] = rng.integers(0, 255, (frames - 1, 2, 2, 3))
+    grid = fixed_view_grid(video, frontal_camera(32), 8.0, {"expression": "blinking", "prompt": "p"})
+    save_grid(grid, project.path("videos", "blinking-s0"))
+    return project, video
+
+
+def test_videos_sv4d2_makes_the_grid_that_reconstruct_runs_on(tmp_path, tiny_ckpt, capsys):
+    from t2bs.geometry.camera import orbit_cameras
+    from t2bs.recon.commands import reconstruct_video
+    from t2bs.recon.config import preset
+    from t2bs.video.commands import videos_command
+    from t2bs.video.grid import load_grid, read_rgb
+
+    project, video = _tiny_project(tmp_path)
+    kw = dict(prompts="blinking", samples=1, defects="mild", frames=16, size=512, views=15, seed=0, shading=None,
+              backend="sv4d2", checkpoint=tiny_ckpt, steps=2, video=None, dtype="float32", offload=False,
+              import_grid=None, expression=None, sample=0)
+    videos_command(project.root, **kw)
+    assert "1 made, 0 up to date, 5 views each" in capsys.readouterr().out
+    vdir = project.path("videos", "blinking-s0")
+    g = load_grid(vdir)
+    assert g.backend == "sv4d2" and g.frames.shape == (5, 5, 32, 32, 3) and g.canonical_view == 2
+    assert np.array_equal(g.frames[2], video)  # the fixed-view video is the canonical view, untouched
+    for v in range(5):  # frame 0 of every view: the static mesh's orbit render
+        assert np.array_equal(g.frames[v, 0], read_rgb(project.path("renders", "orbit", f"view{v:02d}.png")))
+    assert np.allclose(g.times, np.arange(5) / 8.0)
+    for cam, ref in zip(g.cameras, orbit_cameras(5, size=32)):
+        assert np.allclose(cam.world_to_camera, ref.world_to_camera) and np.allclose(cam.K, ref.K)
+    assert g.masks is not None and g.masks.shape == (5, 5, 32, 32) and g.masks[2, 0].any() and not g.masks[2, 0].all()
+    assert g.meta["grid_config"]["shading"] == "unlit" and g.meta["source_backend"] == "cogvideox"
+    # 4 novel views in groups of 2, 5 frames in windows of 3 overlapping by one: 2 x 2 passes.
+    assert [(p["frames"], p["views"]) for p in g.meta["passes"]] == [([0, 2], [0, 1]), ([2, 4], [0, 1]),
+                                                                   ([0, 2], [3, 4]), ([2, 4], [3, 4])]
+    novel = g.frames[[0, 1, 3, 4], 1:]
+    assert novel.std() > 1.0  # the model drew them (random weights: noise, but not a constant)
+    stage = project.manifest()["stages"]["videos"]
+    assert stage["backend"] == "sv4d2" and stage["checkpoint"].endswith("sv4d2.safetensors")
+    videos_command(project.root, **kw)  # unchanged: skipped (its input is now the grid's canonical view)
+    assert "0 made, 1 up to date" in capsys.readouterr().out
+    cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=32, static_iters=3,
+                 iterations=4, global_iters=2, num_control_points=8, checkpoint_every=5, perceptual="none")
+    out, ran = reconstruct_video(project, vdir, cfg, progress=False, preview=False)
+    verts = np.load(out / "vertices.npy")
+    assert ran and verts.shape[0] == 5 and np.isfinite(verts).all()
+
+
+def test_videos_sv4d2_errors_are_one_line(tmp_path, tiny_ckpt):
+    from t2bs.video.commands import videos_command
+
+    project, _ = _tiny_project(tmp_path, frames=2)
+    kw = dict(prompts="blinking", samples=1, defects="mild", frames=16, size=512, views=15, seed=0, shading=None,
+              backend="sv4d2", checkpoint=tmp_path / "nowhere", steps=2, video=None, dtype="float32", offload=False,
+              import_grid=None, expression=None, sample=0)
+    with pytest.raises(MissingCheckpointError, match="sv4d2.safetensors"):
+        videos_command(project.root, **kw)
+    with pytest.raises(UserError, match="3 frames per pass: the input video has 2 frames"):
+        videos_command(project.root, **{**kw, "checkpoint": tiny_ckpt})
+    with pytest.raises(UserError, match="no fixed-view video for smiling-s0"):
+        videos_command(project.root, **{**kw, "checkpoint": tiny_ckpt, "prompts": "smiling"})
+    with pytest.raises(UserError, match="--video needs --expression"):
+        videos_command(project.root, **{**kw, "checkpoint": tiny_ckpt, "video": tmp_path / "v.mp4"})
+
+
+def test_cli_help_names_backend_files_and_licence_and_import_asks_for_shading(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "COLUMNS": "200", "PYTHONPATH": os.pathsep.join(sys.path)}
+    out = subprocess.run([sys.executable, "-m", "t2bs.cli", "videos", "--help"], capture_output=True, text=True, env=env)
+    text = " ".join(out.stdout.replace("│", " ").split())
+    assert out.returncode == 0
+    for words in ("sv4d2", "sv4d2.safetensors", "stabilityai/sv4d2.0", "Stability AI Community License", "--offload"):
+        assert words in text, words
+    (tmp_path / "grid.png").write_bytes(b"")
+    bad = subprocess.run([sys.executable, "-m", "t2bs.cli", "videos", str(tmp_path / "p"), "--import-grid",
+                          str(tmp_path / "grid.png"), "--expression", "smiling"], capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
+    assert bad.stderr.startswith("error: --import-grid needs --shading unlit or lambert")

@@ -725,6 +725,133 @@ def write_tiny_checkpoint(folder: str | os.PathLike, seed: int = 0, **overrides)
     return write_checkpoint(model, folder)
 
 
+# ---------------------------------------------------------------------------------------------
+# The V x T grid by chaining passes
+
+
+@dataclass
+class SV4D2GridConfig:
+    steps: int = 50  # sampler steps per pass (authors' default)
+    guidance: float = 2.0  # guidance scale of the last output of a pass (rises linearly from 1; authors': 2)
+    seed: int = 0  # seed of every pass's noise (pass k uses seed * 1000 + k)
+    # +1: SV4D's azimuth grows in the direction of our orbit's (camera toward the character's left,
+    # +X). Not checked against the real weights (none on this machine): -1 mirrors it.
+    azimuth_sign: float = 1.0
+    dtype: str = "auto"  # UNet precision: auto (bf16 on CUDA, float32 on CPU), float32, bfloat16, float16
+    offload: bool = False  # keep weights on the CPU between parts (GPUs under ~24 GB)
+
+
+@dataclass
+class Pass:
+    frames: list  # [T_p] time indices of the grid made in this pass
+    views: list  # [V_p] view indices of the grid made in this pass
+    anchor: int  # the time whose view images condition the pass (its first frame)
+
+
+def plan_passes(num_frames: int, novel_views: list[int], frames_per_pass: int, views_per_pass: int) -> list[Pass]:
+    """Cover (novel views) x (all times) with passes of views_per_pass x frames_per_pass.
+
+    Views go in groups of ``views_per_pass`` in the given order, the last group shifted back to stay
+    full (it re-makes a few views, whose earlier results are kept). Within a group, time windows
+    start at 0 and overlap by one frame: each window's first frame was made by the previous window
+    (or is the static mesh's render, for frame 0), so every pass is conditioned on the novel views
+    at its first frame, the authors' way of continuing a longer video. The last window is shifted
+    back to end on the last frame.
+    """
+    if num_frames < frames_per_pass:
+        raise UserError(f"SV4D 2.0 makes {frames_per_pass} frames per pass: the input video has {num_frames} "
+                        f"frames; make at least {frames_per_pass} (--frames)")
+    if len(novel_views) < views_per_pass:
+        raise UserError(f"SV4D 2.0 makes {views_per_pass} views per pass: the grid needs at least that many "
+                        f"views besides the input one, got {len(novel_views)}")
+    starts, t0 = [], 0
+    while True:
+        t0 = min(t0, num_frames - frames_per_pass)
+        starts.append(t0)
+        if t0 + frames_per_pass >= num_frames:
+            break
+        t0 += frames_per_pass - 1
+    groups, i = [], 0
+    while i < len(novel_views):
+        j = min(i, len(novel_views) - views_per_pass)
+        groups.append(list(novel_views[j:j + views_per_pass]))
+        i += views_per_pass
+    return [Pass(list(range(s, s + frames_per_pass)), g, s) for g in groups for s in starts]
+
+
+def make_grid_frames(model, video: np.ndarray, orbit: np.ndarray, azimuths_deg, canonical: int,
+                     config: SV4D2GridConfig = SV4D2GridConfig(), progress=None) -> tuple[np.ndarray, list[Pass]]:
+    """Fixed-view video + fixed-time orbit renders -> the V x T grid's frames.
+
+    video [T, S, S, 3] uint8 (the canonical view over time); orbit [V, S, S, 3] uint8 (the static
+    mesh from every grid view, frame 0 of the novel views); azimuths_deg [V] of the grid's views
+    (all at the same elevation). Returns frames [V, T, S, S, 3] uint8 and the passes made.
+    """
+    torch = _torch()
+    import torch.nn.functional as F
+
+    video, orbit = np.asarray(video, np.uint8), np.asarray(orbit, np.uint8)
+    nt, size = video.shape[0], video.shape[1]
+    nv = orbit.shape[0]
+    if video.shape[1:] != (size, size, 3) or orbit.shape[1:] != (size, size, 3):
+        raise UserError(f"SV4D 2.0 needs square frames of one size: video {video.shape[1:]}, orbit renders {orbit.shape[1:]}")
+    cfg = model.cfg
+    res = cfg.image_size
+
+    def to_model(x):  # [N, S, S, 3] uint8 -> [N, 3, res, res] in [-1, 1]
+        t = torch.from_numpy(np.ascontiguousarray(x)).permute(0, 3, 1, 2).float() / 127.5 - 1.0
+        return F.interpolate(t, size=(res, res), mode="bicubic", align_corners=False, antialias=True).clamp(-1, 1) \
+            if res != size else t
+
+    def to_grid(x):  # [N, 3, res, res] in [0, 1] -> [N, S, S, 3] uint8
+        if res != size:
+            x = F.interpolate(x, size=(size, size), mode="bicubic", align_corners=False, antialias=True)
+        return (x.clamp(0, 1) * 255 + 0.5).byte().permute(0, 2, 3, 1).numpy()
+
+    made = np.zeros((nv, nt), bool)  # [V, T] which grid images exist
+    out = np.zeros((nv, nt, size, size, 3), np.uint8)  # [V, T, S, S, 3]
+    out[canonical] = video
+    made[canonical] = True
+    out[:, 0] = orbit  # the static mesh: every view at the first time
+    out[canonical, 0] = video[0]
+    made[:, 0] = True
+    model_in = {}  # (v, t) -> [3, res, res] model-resolution image, [-1, 1]: outputs stay unrounded
+    vid_in = to_model(video)
+    orbit_in = to_model(orbit)
+    for v in range(nv):
+        model_in[(v, 0)] = orbit_in[v]
+    for t in range(nt):
+        model_in[(canonical, t)] = vid_in[t]
+    az = np.asarray(azimuths_deg, np.float64)
+    novel = [v for v in range(nv) if v != canonical]
+    passes = plan_passes(nt, novel, cfg.frames, cfg.views)
+    sampler = SV4D2SamplerConfig(steps=config.steps, cfg_max=config.guidance)
+    lat = res // cfg.vae_factor
+    for k, ps in enumerate(passes):
+        motion = torch.stack([model_in[(canonical, t)] for t in ps.frames])
+        views = torch.stack([model_in[(v, ps.anchor)] for v in ps.views])
+        rel = np.mod(config.azimuth_sign * np.deg2rad(az[ps.views] - az[canonical]), 2 * np.pi)  # [V_p]
+        polar = np.full(cfg.frames * cfg.views, np.pi / 2)  # same elevation as the input view
+        azim = np.tile(rel, cfg.frames)  # time-major, views inner
+        g = torch.Generator().manual_seed(config.seed * 1000 + k)
+        noise = torch.randn(cfg.frames * cfg.views, cfg.latent_channels, lat, lat, generator=g)
+        with torch.no_grad():
+            c, uc = model.conditioning(motion, views, polar, azim)
+            z = model.sample(c, uc, noise, sampler)
+            images = model.decode_latents(z).cpu()  # [T_p * V_p, 3, res, res] in [0, 1]
+        tiles = to_grid(images).reshape(cfg.frames, cfg.views, size, size, 3)
+        for i, t in enumerate(ps.frames):
+            for j, v in enumerate(ps.views):
+                if not made[v, t]:
+                    out[v, t] = tiles[i, j]
+                    model_in[(v, t)] = images[i * cfg.views + j] * 2 - 1
+                    made[v, t] = True
+        if progress is not None:
+            progress(k + 1, len(passes))
+    assert made.all()
+    return out, passes
+
+
 __all__ = ["SV4D2Config", "SV4D2SamplerConfig", "tiny_config", "build_model", "load_model", "check_checkpoint",
            "write_checkpoint", "write_tiny_checkpoint", "published_state_dict", "load_state_dict", "HF_REPO",
-           "CHECKPOINT_FILE", "LICENCE"]
+           "CHECKPOINT_FILE", "LICENCE", "SV4D2GridConfig", "Pass", "plan_passes", "make_grid_frames"]
