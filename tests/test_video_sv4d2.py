@@ -211,3 +211,54 @@ def test_cli_help_names_backend_files_and_licence_and_import_asks_for_shading(tm
                           str(tmp_path / "grid.png"), "--expression", "smiling"], capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
     assert bad.stderr.startswith("error: --import-grid needs --shading unlit or lambert")
+
+
+def test_create_runs_the_chain_and_reports_backends_and_checkpoints(tmp_path, tiny_ckpt, monkeypatch, capsys):
+    """`t2bs create --video-backend procedural+sv4d2`: the video stages for real, the later stages
+    (tested on their own, minutes on a CPU) replaced by recorders."""
+    import shutil
+
+    from test_recon import sphere_mesh
+
+    import t2bs.blendshapes.commands as bc
+    import t2bs.recon.commands as rc
+    import t2bs.retarget.commands as lc
+    from t2bs.geometry.io import save_mesh
+    from t2bs.pipeline import create_command, invoke
+    from t2bs.video.grid import load_grid
+
+    called = []
+
+    def reconstruct(project_dir, preset_name, seed, workers, ray, iterations, control_points):
+        called.append("reconstruct")
+
+    def blendshapes(project_dir, components):
+        called.append("blendshapes")
+
+    def landmarks(project_dir, show):
+        called.append("landmarks")
+
+    monkeypatch.setattr(rc, "reconstruct_command", reconstruct)
+    monkeypatch.setattr(bc, "blendshapes_command", blendshapes)
+    monkeypatch.setattr(lc, "landmarks_command", landmarks)
+    save_mesh(sphere_mesh(1), tmp_path / "sphere.glb")
+    shutil.copytree(tiny_ckpt, tmp_path / "ckpts" / "sv4d2")
+    out = tmp_path / "out"
+    kw = dict(prompt="a sphere", out=out, character_backend="file", mesh=tmp_path / "sphere.glb", prompts="blinking",
+              frames=5, size=32, video_backend="procedural+sv4d2", checkpoints=tmp_path / "ckpts", video_steps=2)
+    invoke(create_command, **kw)
+    assert called == ["reconstruct", "blendshapes", "landmarks"]
+    g = load_grid(out / "videos" / "blinking-s0")
+    assert g.backend == "sv4d2" and g.frames.shape == (15, 5, 32, 32, 3) and g.gt_vertices is not None
+    report = json.loads((out / "report.json").read_text())
+    assert report["backends"]["videos"] == "procedural+sv4d2"
+    assert report["checkpoints"]["videos"] == [str(tmp_path / "ckpts" / "sv4d2" / "sv4d2.safetensors")]
+    assert "videos: procedural+sv4d2 (checkpoints: " in (out / "report.md").read_text()
+    capsys.readouterr()
+    invoke(create_command, **kw)  # a re-run redoes neither the fixed-view video nor the 4D grid
+    text = capsys.readouterr().out
+    assert "videos: 0 made, 1 up to date" in text and "videos (sv4d2): 0 made, 1 up to date" in text
+    with pytest.raises(MissingCheckpointError, match="cogvideox"):
+        invoke(create_command, **{**kw, "video_backend": "cogvideox+sv4d2"})
+    with pytest.raises(UserError, match="--video-backend must be one of"):
+        invoke(create_command, **{**kw, "video_backend": "sv4d"})

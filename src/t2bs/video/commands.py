@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_VIEWS, frontal_camera
-from t2bs.project import Project, content_key, is_done, mark_done
+from t2bs.project import Project, content_key, is_done, mark_done, read_json
 from t2bs.video.defects import preset
 from t2bs.video.grid import import_image_grid, load_grid, save_grid
 from t2bs.video.prompts import (EXPRESSIONS, SAMPLES_PER_PROMPT, VideoJob, load_prompt_list, make_jobs,
@@ -126,7 +126,7 @@ def videos_command(
         for job in jobs:
             vdir = project.path("videos", job.video_id)
             key = content_key(project.mesh_path, GRID_VERSION_KEY, job.prompt, job.sample, asdict(cfg), asdict(defect_cfg), seed)
-            if is_done(vdir, key):
+            if _done(vdir, key):
                 skipped.append(job.video_id)
                 bar.update(cfg.views * cfg.frames)
                 continue
@@ -161,7 +161,7 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
     for job in tqdm(jobs, desc="videos (cogvideox)", unit="video"):
         vdir = project.path("videos", job.video_id)
         key = content_key(front_path, checkpoint.resolve().as_posix(), job.prompt, job.sample, asdict(vcfg), seed)
-        if is_done(vdir, key):
+        if _done(vdir, key):
             continue
         pipe = pipe or load_pipeline(checkpoint)
         t1 = time.perf_counter()
@@ -179,7 +179,6 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
 def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None, steps: int, seed: int,
            video: Path | None, expression: str | None, sample: int, dtype: str, offload: bool) -> None:
     from t2bs.geometry.camera import Camera, canonical_view_index, orbit_azimuths
-    from t2bs.project import read_json
     from t2bs.video.grid import VideoGrid, masks_from_frames, read_rgb, read_video
     from t2bs.video.sv4d2 import SV4D2GridConfig, check_checkpoint, load_model, make_grid_frames
 
@@ -248,16 +247,36 @@ def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None
                 "masks_from": "background key", "licence": "Stability AI Community License (SV4D 2.0 outputs)"}
         grid = VideoGrid(grid_frames, cameras, np.asarray(times, np.float32), canonical, masks_from_frames(grid_frames),
                          gt, "sv4d2", meta).validate("sv4d2 grid")
+        prior = read_json(vdir / "done.json") if (vdir / "done.json").exists() else {}
+        source_key = prior.get("source_key") if prior.get("backend") == "sv4d2" else prior.get("key")
         save_grid(grid, vdir)
         save_contact_sheet(grid, vdir / "contact_sheet.png")
-        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="sv4d2")
+        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="sv4d2", source_key=source_key)
         made.append(video_id)
     seconds = time.perf_counter() - t0
-    project.record_stage("videos", backend="sv4d2", checkpoint=str(ckpt_file), config=asdict(gcfg),
+    # Keep what made the fixed-view videos (backend, checkpoint) in the record: the report names both.
+    prev = project.manifest().get("stages", {}).get("videos") or {}
+    fixed_view = prev.get("fixed_view_stage") if prev.get("backend") == "sv4d2" else prev
+    fixed_view = {k: fixed_view[k] for k in ("backend", "checkpoint", "config") if k in fixed_view} if fixed_view else None
+    if video is not None:
+        fixed_view = {"backend": "file", "checkpoint": None, "config": {"video": str(video)}}
+    project.record_stage("videos", backend="sv4d2", checkpoint=str(ckpt_file), config=asdict(gcfg), fixed_view_stage=fixed_view,
                          videos=[s[0] for s in sources], made=len(made), skipped=len(skipped),
                          inputs={s[0]: s[6].get("backend") for s in sources}, seconds=round(seconds, 3))
     print(f"videos (sv4d2): {len(made)} made, {len(skipped)} up to date, {nv} views each, in {project.path('videos')} "
           f"({seconds:.1f} s)")
+
+
+def _done(vdir: Path, key: str) -> bool:
+    """Finished for ``key``, or since lifted to a 4D grid from exactly that fixed-view video (kept:
+    the 4D grid's canonical view is that video, and redoing it would undo the 4D stage)."""
+    if is_done(vdir, key):
+        return True
+    marker = vdir / "done.json"
+    try:
+        return marker.exists() and read_json(marker).get("source_key") == key
+    except (ValueError, OSError):
+        return False
 
 
 def _square(frames: np.ndarray, size: int) -> np.ndarray:
