@@ -179,3 +179,17 @@ def test_imported_grids_keep_masks_and_state_their_shading(tmp_path):
     assert keyed.sum() == 2 * 8 * 4 and keyed[0, 0, 6:14, 8:12].all()
     with pytest.raises(UserError, match="shading must be unlit or lambert"):
         import_image_grid(tmp_path / "rgba", cameras=orbit_cameras(2, 16), shading="pbr")
+
+
+def test_vcdgs_warns_when_a_grid_does_not_state_its_shading(capsys):
+    from t2bs.recon.config import preset
+    from t2bs.recon.vcdgs import prepare_data
+
+    frames = np.full((3, 2, 16, 16, 3), 255, np.uint8)
+    grid = VideoGrid(frames, orbit_cameras(3, 16), np.array([0.0, 0.125], np.float32), 1, backend="sv4d-import")
+    cfg = preset("quick", resolution=16)
+    assert prepare_data(grid, cfg).shading == "lambert"
+    assert "warning: the grid (sv4d-import) does not say how it was lit" in capsys.readouterr().out
+    grid.meta["grid_config"] = {"shading": "unlit"}
+    assert prepare_data(grid, cfg).shading == "unlit"
+    assert "warning" not in capsys.readouterr().out
