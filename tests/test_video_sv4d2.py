@@ -99,6 +99,14 @@ def test_one_pass_is_seeded_and_uses_every_condition(tiny_ckpt):
         assert float((other - z).abs().max()) > 1e-3  # the view images and the cameras both matter
     images = model.decode_latents(z)
     assert images.shape == (T * V, 3, H, H) and float(images.min()) >= 0 and float(images.max()) <= 1
+    # CPU offload (parts moved to the execution device only while they run) gives the same numbers;
+    # a bf16 UNet gives nearly the same (the sampler's state stays float32).
+    off = sv4d2.load_model(tiny_ckpt, device="cpu", dtype="float32", offload=True)
+    assert off.execution_device is not None and torch.equal(off.sample(c, uc, noise, steps), z)
+    half = sv4d2.load_model(tiny_ckpt, device="cpu", dtype="bfloat16")
+    assert next(half.unet.parameters()).dtype == torch.bfloat16 and next(half.vae.parameters()).dtype == torch.float32
+    zh = half.sample(c, uc, noise, steps)
+    assert zh.dtype == torch.float32 and float((zh - z).abs().max()) < 0.1 * float(z.abs().max())
     with pytest.raises(UserError, match=f"makes {T} frames per pass"):
         model.conditioning(motion[:1], views, polar, azim)
 
