@@ -154,6 +154,48 @@ def build_reference(cfg, mods):
     return engine.eval(), denoiser
 
 
+def full_size_layout(mods) -> tuple[int, int]:
+    """The published size (sv4d2.yaml): every reference weight maps to one of ours, same shape.
+
+    Both models are built on the meta device (no memory, no compute). Returns (weights compared,
+    parameters). Raises AssertionError naming the first mismatch.
+    """
+    import contextlib
+    import io
+
+    import torch
+
+    from t2bs.video import sv4d2
+
+    cfg = sv4d2.SV4D2Config()
+    with torch.device("meta"), contextlib.redirect_stdout(io.StringIO()):
+        engine, _ = build_reference(cfg, mods)
+        ours = sv4d2.build_model(cfg)
+    ref = engine.state_dict()
+
+    def group(prefix):
+        return {k[len(prefix):]: v for k, v in ref.items() if k.startswith(prefix)}
+
+    def same(mapped: dict, module, what: str, skip=()):
+        want = {k: v for k, v in module.state_dict().items() if not k.endswith(skip or ("\0",))}
+        assert mapped.keys() == want.keys(), (what, sorted(set(mapped) ^ set(want))[:5])
+        for k in want:
+            assert tuple(mapped[k].shape) == tuple(want[k].shape), (what, k, mapped[k].shape, want[k].shape)
+        return len(want)
+
+    n = same({sv4d2.unet_key_to_ours(k): v for k, v in group(sv4d2.UNET_PREFIX).items()}, ours.unet, "UNet")
+    n += same(sv4d2.clip_to_ours(group(sv4d2.CLIP_PREFIX), cfg.clip_layers), ours.image_encoder, "CLIP",
+              skip=("position_ids",))
+    enc = {k: v for k, v in group(sv4d2.FRAMES_VAE_PREFIX).items() if k.startswith(("encoder.", "quant_conv."))}
+    dec = {f"decoder.{k}": v for k, v in group(sv4d2.DECODER_PREFIX).items()}
+    n += same(sv4d2.vae_to_ours({**enc, **dec}, ours.vae), ours.vae, "VAE")
+    unused = [k for k in ref if not k.startswith((sv4d2.UNET_PREFIX, sv4d2.CLIP_PREFIX, sv4d2.FRAMES_VAE_PREFIX,
+                                                  sv4d2.VIEW_VAE_PREFIX, sv4d2.DECODER_PREFIX))]
+    # What the loader leaves out: the motion-frame encoder (its latents reach no layer of the network).
+    assert all(k.startswith("conditioner.embedders.5.") for k in unused), unused[:5]
+    return n, sum(v.numel() for v in ours.parameters())
+
+
 def main(reference: Path = typer.Option(Path("../generative-models"), help="Checkout of Stability-AI/generative-models."),
          open_clip: Path = typer.Option(Path("../open_clip"), help="Checkout of mlfoundations/open_clip."),
          steps: int = typer.Option(4, help="Sampler steps for the latent comparison."),
@@ -274,6 +316,9 @@ def main(reference: Path = typer.Option(Path("../generative-models"), help="Chec
         print(f"{name:58s} {d:16.3e} {m:10.3e}")
     # The view images must matter (else the chained-pass comparison would test nothing new).
     print(f"{'(check) ours: chained vs first-pass latents differ by':58s} {float((made[1] - made[0]).abs().max()):16.3e}")
+    n, params = full_size_layout(mods)
+    print(f"published size (sv4d2.yaml, meta device): all {n} weights of UNet, CLIP and VAE map 1:1 with equal shapes "
+          f"({params / 1e9:.2f} B parameters)")
     worst = max(d / max(m, 1e-12) for _, d, m in rows)
     print(f"worst relative difference: {worst:.2e} ({'EQUAL within float32 tolerance' if worst < 1e-4 else 'DIFFERENT'})")
     if worst >= 1e-4:
