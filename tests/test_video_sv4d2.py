@@ -270,3 +270,21 @@ def test_create_runs_the_chain_and_reports_backends_and_checkpoints(tmp_path, ti
         invoke(create_command, **{**kw, "video_backend": "cogvideox+sv4d2"})
     with pytest.raises(UserError, match="--video-backend must be one of"):
         invoke(create_command, **{**kw, "video_backend": "sv4d"})
+
+
+def test_videos_sv4d2_from_a_video_file_keeps_its_frame_rate(tmp_path, tiny_ckpt):
+    import imageio.v2 as iio
+
+    from t2bs.video.commands import videos_command
+    from t2bs.video.grid import load_grid
+
+    project, video = _tiny_project(tmp_path)
+    wide = np.pad(video, ((0, 0), (0, 0), (8, 8), (0, 0)), constant_values=255)  # 48 x 32: cropped to the square
+    iio.mimwrite(tmp_path / "clip.mp4", list(wide), fps=10, macro_block_size=1)
+    videos_command(project.root, prompts="blinking", samples=1, defects="mild", frames=16, size=512, views=15, seed=0,
+                   shading=None, backend="sv4d2", checkpoint=tiny_ckpt, steps=1, video=tmp_path / "clip.mp4",
+                   dtype="float32", offload=False, import_grid=None, expression="raising the eyebrows", sample=1)
+    g = load_grid(project.path("videos", "raising-the-eyebrows-s1"))
+    assert g.frames.shape == (5, 5, 32, 32, 3) and np.allclose(g.times, np.arange(5) / 10.0)
+    assert np.abs(g.frames[2].astype(int) - video).mean() < 8  # the clip (lossy mp4), centre-cropped
+    assert project.manifest()["stages"]["videos"]["fixed_view_stage"]["backend"] == "file"

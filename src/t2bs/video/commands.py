@@ -208,7 +208,7 @@ def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None
             raise UserError("--video needs --expression NAME (the expression the video shows; names its folder)")
         expr = resolve_expressions([expression], allow_custom=True)[0]
         frames = _square(read_video(video), size)
-        fps = 8.0
+        fps = _video_fps(video)
         sources.append((f"{slug(expr)}-s{sample}", expr, sample, video_prompt(character, expr), frames,
                         (np.arange(len(frames)) / fps).astype(np.float32), {"source": str(video), "backend": "file"}, None))
     else:
@@ -265,6 +265,20 @@ def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None
                          inputs={s[0]: s[6].get("backend") for s in sources}, seconds=round(seconds, 3))
     print(f"videos (sv4d2): {len(made)} made, {len(skipped)} up to date, {nv} views each, in {project.path('videos')} "
           f"({seconds:.1f} s)")
+
+
+def _video_fps(path: Path) -> float:
+    """Frame rate of a video file (its time stamps), from its metadata; 8 fps said aloud when absent."""
+    import imageio.v3 as iio
+
+    try:
+        fps = float(iio.immeta(path).get("fps") or 0)
+    except Exception:  # imageio raises many types for containers without metadata
+        fps = 0.0
+    if not np.isfinite(fps) or fps <= 0:
+        print(f"{path}: no frame rate in the file; time stamps at 8 fps")
+        return 8.0
+    return fps
 
 
 def _done(vdir: Path, key: str) -> bool:
