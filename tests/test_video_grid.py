@@ -151,3 +151,45 @@ def test_contact_sheet_layout():
     assert sheet.shape == (3 * 18 + 2, 8 * 18 + 2, 3)
     assert np.array_equal(sheet[2:18, 2:18], g.frames[0, 0])  # first frame of view 0
     assert np.array_equal(sheet[2:18, -18:-2], g.frames[0, 19])  # last frame in the last column
+
+
+def test_imported_grids_keep_masks_and_state_their_shading(tmp_path):
+    from PIL import Image
+
+    from t2bs.video.grid import masks_from_frames
+
+    # Views as folders of RGBA PNGs: the masks come from alpha.
+    rng = np.random.default_rng(0)
+    alpha = np.zeros((2, 3, 16, 16), np.uint8)
+    alpha[:, :, 4:12, 5:11] = 255
+    for v in range(2):
+        (tmp_path / "rgba" / f"v{v}").mkdir(parents=True)
+        for t in range(3):
+            rgba = np.dstack([rng.integers(0, 255, (16, 16, 3)).astype(np.uint8), alpha[v, t]])
+            Image.fromarray(rgba, "RGBA").save(tmp_path / "rgba" / f"v{v}" / f"{t}.png")
+    g = import_image_grid(tmp_path / "rgba", cameras=orbit_cameras(2, 16), shading="unlit")
+    assert g.masks.shape == (2, 3, 16, 16) and np.array_equal(g.masks, alpha > 127)
+    assert g.meta["masks_from"] == "alpha" and g.meta["grid_config"]["shading"] == "unlit"
+    save_grid(g, tmp_path / "saved")
+    assert np.array_equal(load_grid(tmp_path / "saved").masks, alpha > 127)
+    # RGB frames on a plain (grey) ground: keyed from the border colour.
+    frames = np.full((1, 2, 20, 20, 3), 200, np.uint8)
+    frames[0, :, 6:14, 8:12] = (30, 200, 90)
+    keyed = masks_from_frames(frames)
+    assert keyed.sum() == 2 * 8 * 4 and keyed[0, 0, 6:14, 8:12].all()
+    with pytest.raises(UserError, match="shading must be unlit or lambert"):
+        import_image_grid(tmp_path / "rgba", cameras=orbit_cameras(2, 16), shading="pbr")
+
+
+def test_vcdgs_warns_when_a_grid_does_not_state_its_shading(capsys):
+    from t2bs.recon.config import preset
+    from t2bs.recon.vcdgs import prepare_data
+
+    frames = np.full((3, 2, 16, 16, 3), 255, np.uint8)
+    grid = VideoGrid(frames, orbit_cameras(3, 16), np.array([0.0, 0.125], np.float32), 1, backend="sv4d-import")
+    cfg = preset("quick", resolution=16)
+    assert prepare_data(grid, cfg).shading == "lambert"
+    assert "warning: the grid (sv4d-import) does not say how it was lit" in capsys.readouterr().out
+    grid.meta["grid_config"] = {"shading": "unlit"}
+    assert prepare_data(grid, cfg).shading == "unlit"
+    assert "warning" not in capsys.readouterr().out

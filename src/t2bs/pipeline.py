@@ -45,6 +45,10 @@ CREATE_PRESETS = {
 }
 
 
+# The expression-video chains `create` runs: the fixed-view video's backend [+ the 4D model's].
+VIDEO_BACKENDS = ("procedural", "cogvideox+sv4d2", "procedural+sv4d2")
+
+
 def invoke(command, **kwargs):
     """Call a typer command function from Python: given arguments, declared defaults for the rest."""
     args = {}
@@ -78,8 +82,28 @@ def create_command(
     defects: str = typer.Option(None, help="Simulated 4D-model defects: clean, mild, paper (default: the preset's)."),
     iterations: int = typer.Option(0, help="VCDGS steps per video (0 = the preset's)."),
     control_points: int = typer.Option(0, help="VCDGS control points (0 = the preset's)."),
+    video_backend: str = typer.Option("procedural", "--video-backend", help="procedural (offline animator), "
+                                      "cogvideox+sv4d2 (the paper's chain: CogVideoX image-to-video, then SV4D 2.0 "
+                                      "for the 15-view grid) or procedural+sv4d2 (the animator's front view into SV4D 2.0)."),
+    checkpoints: Path = typer.Option(None, "--checkpoints", help="Folder of the video models' weights: cogvideox/ "
+                                     "(THUDM/CogVideoX-5b-I2V, diffusers layout) and sv4d2/ (sv4d2.safetensors from "
+                                     "stabilityai/sv4d2.0, Stability AI Community License). See docs/SV4D2.md."),
+    video_steps: int = typer.Option(0, help="Denoising steps of the video models (0 = their defaults, 50)."),
 ) -> None:
     """Text -> animatable blendshape rig: runs every stage and writes DIR/report.md."""
+    if video_backend not in VIDEO_BACKENDS:
+        raise UserError(f"--video-backend must be one of {', '.join(VIDEO_BACKENDS)}, got {video_backend!r}")
+    fixed_backend, four_d = (video_backend.split("+") + [None])[:2]
+    if four_d:
+        if checkpoints is None:
+            raise UserError(f"--video-backend {video_backend} needs --checkpoints DIR (with cogvideox/ and sv4d2/ inside)")
+        from t2bs.video.sv4d2 import check_checkpoint
+
+        check_checkpoint(checkpoints / "sv4d2")  # before hours of other stages
+        if fixed_backend == "cogvideox":
+            from t2bs.video.cogvideox import check_checkpoint as check_cogvideox
+
+            check_cogvideox(checkpoints / "cogvideox")
     if preset not in CREATE_PRESETS:
         raise UserError(f"unknown preset {preset!r}; use one of {', '.join(CREATE_PRESETS)}")
     if workers < 1:
@@ -104,10 +128,20 @@ def create_command(
 
     if character_backend == "file" and mesh is None:
         raise UserError("--character-backend file needs --mesh PATH")
-    stage("character", character_command, prompt=prompt, out=out, backend=character_backend, seed=seed, mesh=mesh)
     grid = {"frames": frames or p.frames, "size": size or p.size, **({"views": views} if views else {})}
-    stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, defects=defects or p.defects,
-          seed=seed, **grid)
+    # A 4D model's grid uses the character's orbit renders: render them at the grid's size.
+    render_size = {"size": grid["size"]} if four_d else {}
+    stage("character", character_command, prompt=prompt, out=out, backend=character_backend, seed=seed, mesh=mesh, **render_size)
+    steps = {"steps": video_steps} if video_steps else {}
+    if fixed_backend == "cogvideox":
+        stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, seed=seed, backend="cogvideox",
+              checkpoint=checkpoints / "cogvideox", **grid, **steps)
+    else:
+        stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, defects=defects or p.defects,
+              seed=seed, **grid)
+    if four_d:
+        stage("videos_4d", videos_command, project_dir=out, prompts=prompts, samples=samples, seed=seed, backend="sv4d2",
+              checkpoint=checkpoints / "sv4d2", **steps)
     stage("reconstruct", reconstruct_command, project_dir=out, preset_name=p.recon, seed=seed, workers=workers,
           ray=ray, iterations=iterations, control_points=control_points)
     stage("blendshapes", blendshapes_command, project_dir=out, components=p.components)
@@ -159,7 +193,8 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
     report = {
         "prompt": prompt,
         "preset": preset,
-        "backends": {name: info.get("backend") for name, info in stages.items()},
+        "backends": {name: _backend_chain(info) for name, info in stages.items()},
+        "checkpoints": {name: c for name, c in ((n, _checkpoints(info)) for n, info in stages.items()) if c},
         "stage_seconds": times,
         "total_seconds": round(sum(times.values()), 2),
         "videos": videos,
@@ -171,12 +206,26 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
     return report
 
 
+def _backend_chain(info: dict) -> str | None:
+    """A stage's backend; for a 4D video stage, the fixed-view backend first (cogvideox+sv4d2)."""
+    first = (info.get("fixed_view_stage") or {}).get("backend")
+    return f"{first}+{info.get('backend')}" if first else info.get("backend")
+
+
+def _checkpoints(info: dict) -> list[str]:
+    """The checkpoints a stage used (the fixed-view model's first)."""
+    found = [(info.get("fixed_view_stage") or {}).get("checkpoint"), info.get("checkpoint")]
+    return [str(c) for c in found if c]
+
+
 def _write_markdown(project: Project, report: dict) -> None:
     from t2bs.project import atomic_path
 
     lines = [f"# t2bs report: {report['prompt']}", "", f"Preset `{report['preset']}`; total {report['total_seconds']:.0f} s.", "",
              "## Backends", ""]
-    lines += [f"- {stage}: {backend}" for stage, backend in report["backends"].items()]
+    ckpts = report.get("checkpoints", {})
+    lines += [f"- {stage}: {backend}" + (f" (checkpoints: {', '.join(ckpts[stage])})" if stage in ckpts else "")
+              for stage, backend in report["backends"].items()]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
     lines += ["", "## Videos", "",

@@ -137,6 +137,10 @@ def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
         raise UserError(f"the canonical view {grid.canonical_view} cannot be held out")
     train_views = [v for v in range(grid.num_views) if v not in hold]
     shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
+    if "shading" not in (grid.meta.get("grid_config") or {}) and cfg.static_shading == "auto":
+        # Say it: an unlit grid fitted to lit mesh renders skews the static colours.
+        print(f"warning: the grid ({grid.backend}) does not say how it was lit; the static fit assumes lambert "
+              "mesh renders (`--set static_shading=unlit` if it is unlit, or re-import it with --shading)", flush=True)
     return TrainData(images, masks, cams, int(grid.canonical_view), train_views,
                      shading if shading in ("unlit", "lambert") else "lambert")
 

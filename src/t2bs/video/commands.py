@@ -3,8 +3,10 @@
 Backends:
 - ``procedural`` (default, offline): the character's own rig animated by the prompt, rendered
   from the orbit cameras with simulated 4D-generator defects; ground-truth vertices kept.
-- ``cogvideox``: the fixed-view video from a local CogVideoX-5b-I2V checkpoint (one view; the
-  multi-view grid then comes from a 4D video model, see ``--import-grid``).
+- ``cogvideox``: the fixed-view video from a local CogVideoX-5b-I2V checkpoint (one view).
+- ``sv4d2``: the paper's 4D stage: the fixed-view video (a one-view cogvideox grid, a procedural
+  grid's canonical view, or ``--video FILE``) plus the static mesh's orbit renders -> the V x T
+  grid from a local SV4D 2.0 checkpoint, by chained passes (docs/SV4D2.md).
 - ``--import-grid PATH``: bring one grid written by SV4D / any 4D model into the project.
 
 Finished videos are skipped on re-run (content key of the character, prompt and settings in
@@ -13,16 +15,18 @@ each video's done.json); an interrupted video is redone.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import typer
 from tqdm import tqdm
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_VIEWS, frontal_camera
-from t2bs.project import Project, content_key, is_done, mark_done
+from t2bs.project import Project, content_key, is_done, mark_done, read_json
 from t2bs.video.defects import preset
 from t2bs.video.grid import import_image_grid, load_grid, save_grid
 from t2bs.video.prompts import (EXPRESSIONS, SAMPLES_PER_PROMPT, VideoJob, load_prompt_list, make_jobs,
@@ -63,21 +67,42 @@ def videos_command(
     size: int = typer.Option(512, help="Frame side in pixels (128 for quick runs)."),
     views: int = typer.Option(ORBIT_VIEWS, help="Orbit views over azimuth -60..60 (odd; paper: 15)."),
     seed: int = typer.Option(0, help="Seed of animation and defects."),
-    shading: str = typer.Option("unlit", help="unlit (ambient = 1, the paper's protocol) or lambert."),
-    backend: str = typer.Option("procedural", help="procedural (offline, with ground truth) or cogvideox (fixed view only)."),
-    checkpoint: Path = typer.Option(None, help="CogVideoX-5b-I2V folder (diffusers layout) for --backend cogvideox."),
-    steps: int = typer.Option(50, help="Denoising steps (cogvideox)."),
+    shading: str = typer.Option(None, help="unlit (ambient = 1, the paper's protocol; procedural default) or lambert. "
+                                "--import-grid: how the render the 4D model started from was lit (required)."),
+    backend: str = typer.Option("procedural", help="procedural (offline, with ground truth), cogvideox (fixed view only) "
+                                "or sv4d2 (the V x T grid from the fixed-view video; see below)."),
+    checkpoint: Path = typer.Option(None, help="cogvideox: CogVideoX-5b-I2V folder (diffusers layout). sv4d2: folder holding "
+                                    "sv4d2.safetensors from stabilityai/sv4d2.0 (one file with UNet, CLIP image encoder "
+                                    "and VAE; Stability AI Community License: accept it on the model page, then "
+                                    "`huggingface-cli download stabilityai/sv4d2.0 sv4d2.safetensors --local-dir DIR`)."),
+    steps: int = typer.Option(50, help="Denoising steps (cogvideox; sv4d2 per pass, authors' default 50)."),
+    video: Path = typer.Option(None, "--video", help="sv4d2: a fixed-view video file (front view over time) to use "
+                               "instead of the project's; needs --expression."),
+    dtype: str = typer.Option("auto", help="sv4d2 UNet precision: auto (bf16 on CUDA), float32, bfloat16, float16."),
+    offload: bool = typer.Option(False, help="sv4d2: keep weights on the CPU between parts (GPUs under ~24 GB)."),
     import_grid: Path = typer.Option(None, "--import-grid", help="Import a V x T grid (one image, view folders or videos) from a 4D model."),
-    expression: str = typer.Option(None, help="Expression of the imported grid (names its folder)."),
-    sample: int = typer.Option(0, help="Sample index of the imported grid."),
+    expression: str = typer.Option(None, help="Expression of the imported grid or of --video (names its folder)."),
+    sample: int = typer.Option(0, help="Sample index of the imported grid or of --video."),
 ) -> None:
-    """Make the expression videos: one multi-view grid per (prompt, sample) in DIR/videos/."""
+    """Make the expression videos: one multi-view grid per (prompt, sample) in DIR/videos/.
+
+    --backend sv4d2 is the paper's 4D stage with SV4D 2.0 (Stability AI; weights under the Stability
+    AI Community License, which you accept on the model page of stabilityai/sv4d2.0 before
+    downloading: free for research and for organisations under USD 1M annual revenue). It reads
+    each video's fixed-view video (made first with --backend cogvideox, or a procedural grid's
+    canonical view, or --video FILE) and the static mesh's orbit renders (`t2bs render`), and
+    writes the 15-view grid, 4 views x 12 frames per pass, chained (docs/SV4D2.md).
+    """
     project = Project(project_dir)
     if import_grid is not None:
-        _import(project, import_grid, expression, sample, views, frames)
+        _import(project, import_grid, expression, sample, views, frames, shading)
         return
-    if backend not in ("procedural", "cogvideox"):
-        raise UserError(f"--backend must be procedural or cogvideox, got {backend!r}")
+    if backend not in ("procedural", "cogvideox", "sv4d2"):
+        raise UserError(f"--backend must be procedural, cogvideox or sv4d2, got {backend!r}")
+    shading = shading or "unlit"
+    if backend == "sv4d2":
+        _sv4d2(project, prompts, samples, checkpoint, steps, seed, video, expression, sample, dtype, offload)
+        return
     cfg = GridConfig(frames=frames, size=size, views=views, shading=shading)
     check_config(cfg)
     defect_cfg = preset(defects, seed=seed)
@@ -101,7 +126,7 @@ def videos_command(
         for job in jobs:
             vdir = project.path("videos", job.video_id)
             key = content_key(project.mesh_path, GRID_VERSION_KEY, job.prompt, job.sample, asdict(cfg), asdict(defect_cfg), seed)
-            if is_done(vdir, key):
+            if _done(vdir, key):
                 skipped.append(job.video_id)
                 bar.update(cfg.views * cfg.frames)
                 continue
@@ -136,7 +161,7 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
     for job in tqdm(jobs, desc="videos (cogvideox)", unit="video"):
         vdir = project.path("videos", job.video_id)
         key = content_key(front_path, checkpoint.resolve().as_posix(), job.prompt, job.sample, asdict(vcfg), seed)
-        if is_done(vdir, key):
+        if _done(vdir, key):
             continue
         pipe = pipe or load_pipeline(checkpoint)
         t1 = time.perf_counter()
@@ -151,23 +176,159 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
                          videos=[j.video_id for j in jobs])
 
 
-def _import(project: Project, source: Path, expression: str | None, sample: int, views: int, frames: int) -> None:
+def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None, steps: int, seed: int,
+           video: Path | None, expression: str | None, sample: int, dtype: str, offload: bool) -> None:
+    from t2bs.geometry.camera import Camera, canonical_view_index, orbit_azimuths
+    from t2bs.video.grid import VideoGrid, masks_from_frames, read_rgb, read_video
+    from t2bs.video.sv4d2 import SV4D2GridConfig, check_checkpoint, load_model, make_grid_frames
+
+    if checkpoint is None:
+        raise UserError("--backend sv4d2 needs --checkpoint DIR (a folder holding sv4d2.safetensors from stabilityai/sv4d2.0)")
+    ckpt_file = check_checkpoint(checkpoint)
+    # The static mesh's fixed-time orbit (frame 0 of every view) and its cameras, from `t2bs render`.
+    cams_path = project.path("renders", "cameras.json")
+    if not cams_path.exists():
+        raise UserError(f"{cams_path} missing: run `t2bs render` first (SV4D 2.0 starts every view from the mesh's orbit renders)")
+    try:
+        cameras = [Camera.from_dict(c) for c in read_json(cams_path)["orbit"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{cams_path}: unreadable orbit cameras ({exc})") from None
+    nv = len(cameras)
+    orbit = np.stack([read_rgb(project.path("renders", "orbit", f"view{v:02d}.png")) for v in range(nv)])  # [V, S, S, 3]
+    size = orbit.shape[1]
+    canonical = canonical_view_index(nv)
+    azimuths = orbit_azimuths(nv)
+    render_cfg = (project.manifest().get("stages", {}).get("render") or {}).get("config") or {}
+    shading = render_cfg.get("shading", "lambert") if isinstance(render_cfg, dict) else "lambert"
+    gcfg = SV4D2GridConfig(steps=steps, seed=seed, dtype=dtype, offload=offload)
+    sources = []  # (video_id, expression, sample, prompt, frames [T, S, S, 3], times [T], source meta, gt)
+    character = character_prompt(project)
+    if video is not None:
+        if not expression:
+            raise UserError("--video needs --expression NAME (the expression the video shows; names its folder)")
+        expr = resolve_expressions([expression], allow_custom=True)[0]
+        frames = _square(read_video(video), size)
+        fps = _video_fps(video)
+        sources.append((f"{slug(expr)}-s{sample}", expr, sample, video_prompt(character, expr), frames,
+                        (np.arange(len(frames)) / fps).astype(np.float32), {"source": str(video), "backend": "file"}, None))
+    else:
+        for job in make_jobs(character, parse_expressions(prompts, "cogvideox"), samples):
+            vdir = project.path("videos", job.video_id)
+            if not (vdir / "grid.json").exists():
+                raise UserError(f"{vdir}: no fixed-view video for {job.video_id}: make it first (`t2bs videos DIR --backend "
+                                f"cogvideox ...`, or the procedural backend) or pass --video FILE --expression NAME")
+            src = load_grid(vdir)
+            frames = _square(src.canonical_frames(), size)
+            info = {"backend": src.meta.get("source_backend", src.backend), "video_id": job.video_id}
+            sources.append((job.video_id, job.expression, job.sample, job.prompt, frames, src.times, info, src.gt_vertices))
+    model = None
+    made, skipped = [], []
+    t0 = time.perf_counter()
+    for video_id, expr, smp, prompt, frames, times, src_info, gt in sources:
+        vdir = project.path("videos", video_id)
+        key = content_key(ckpt_file.resolve().as_posix(), os.path.getsize(ckpt_file), frames, orbit,
+                          asdict(gcfg), "t2bs-sv4d2-1")
+        if is_done(vdir, key):
+            skipped.append(video_id)
+            continue
+        if model is None:
+            model = load_model(checkpoint, dtype=dtype, offload=offload)
+        t1 = time.perf_counter()
+        with tqdm(desc=f"sv4d2 {video_id}", unit="pass") as bar:
+            def step(k, n):
+                bar.total = n
+                bar.update(1)
+
+            grid_frames, passes = make_grid_frames(model, frames, orbit, azimuths, canonical, gcfg, progress=step)
+        meta = {"prompt": prompt, "expression": expr, "sample": smp, "video_id": video_id, "seed": seed,
+                "checkpoint": str(ckpt_file), "source_backend": src_info.get("backend"), "input": src_info,
+                "sv4d2": asdict(gcfg), "passes": [{"frames": [p.frames[0], p.frames[-1]], "views": p.views} for p in passes],
+                "grid_config": {"shading": shading, "size": size, "views": nv, "frames": len(frames)},
+                "masks_from": "background key", "licence": "Stability AI Community License (SV4D 2.0 outputs)"}
+        grid = VideoGrid(grid_frames, cameras, np.asarray(times, np.float32), canonical, masks_from_frames(grid_frames),
+                         gt, "sv4d2", meta).validate("sv4d2 grid")
+        prior = read_json(vdir / "done.json") if (vdir / "done.json").exists() else {}
+        source_key = prior.get("source_key") if prior.get("backend") == "sv4d2" else prior.get("key")
+        save_grid(grid, vdir)
+        save_contact_sheet(grid, vdir / "contact_sheet.png")
+        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="sv4d2", source_key=source_key)
+        made.append(video_id)
+    seconds = time.perf_counter() - t0
+    # Keep what made the fixed-view videos (backend, checkpoint) in the record: the report names both.
+    prev = project.manifest().get("stages", {}).get("videos") or {}
+    fixed_view = prev.get("fixed_view_stage") if prev.get("backend") == "sv4d2" else prev
+    fixed_view = {k: fixed_view[k] for k in ("backend", "checkpoint", "config") if k in fixed_view} if fixed_view else None
+    if video is not None:
+        fixed_view = {"backend": "file", "checkpoint": None, "config": {"video": str(video)}}
+    project.record_stage("videos", backend="sv4d2", checkpoint=str(ckpt_file), config=asdict(gcfg), fixed_view_stage=fixed_view,
+                         videos=[s[0] for s in sources], made=len(made), skipped=len(skipped),
+                         inputs={s[0]: s[6].get("backend") for s in sources}, seconds=round(seconds, 3))
+    print(f"videos (sv4d2): {len(made)} made, {len(skipped)} up to date, {nv} views each, in {project.path('videos')} "
+          f"({seconds:.1f} s)")
+
+
+def _video_fps(path: Path) -> float:
+    """Frame rate of a video file (its time stamps), from its metadata; 8 fps said aloud when absent."""
+    import imageio.v3 as iio
+
+    try:
+        fps = float(iio.immeta(path).get("fps") or 0)
+    except Exception:  # imageio raises many types for containers without metadata
+        fps = 0.0
+    if not np.isfinite(fps) or fps <= 0:
+        print(f"{path}: no frame rate in the file; time stamps at 8 fps")
+        return 8.0
+    return fps
+
+
+def _done(vdir: Path, key: str) -> bool:
+    """Finished for ``key``, or since lifted to a 4D grid from exactly that fixed-view video (kept:
+    the 4D grid's canonical view is that video, and redoing it would undo the 4D stage)."""
+    if is_done(vdir, key):
+        return True
+    marker = vdir / "done.json"
+    try:
+        return marker.exists() and read_json(marker).get("source_key") == key
+    except (ValueError, OSError):
+        return False
+
+
+def _square(frames: np.ndarray, size: int) -> np.ndarray:
+    """[T, H, W, 3] -> [T, size, size, 3]: centre square crop, resized (the render's framing)."""
+    from PIL import Image
+
+    frames = np.asarray(frames, np.uint8)
+    h, w = frames.shape[1:3]
+    side = min(h, w)
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    crop = frames[:, y0:y0 + side, x0:x0 + side]
+    if side == size:
+        return np.ascontiguousarray(crop)
+    return np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BICUBIC)) for f in crop])
+
+
+def _import(project: Project, source: Path, expression: str | None, sample: int, views: int, frames: int,
+            shading: str | None) -> None:
     if not expression:
         raise UserError("--import-grid needs --expression NAME (the prompt the 4D model animated)")
+    if shading not in ("unlit", "lambert"):
+        raise UserError("--import-grid needs --shading unlit or lambert: how the mesh render the 4D model started from "
+                        "was lit (VCDGS fits its static Gaussians to mesh renders lit the same way)")
     expr = resolve_expressions([expression], allow_custom=True)[0]
     video_id = f"{slug(expr)}-s{sample}"
     single = source.is_file()
     grid = import_image_grid(source, views=views if single or views != ORBIT_VIEWS else None,
                              frames=frames if single else None,
                              meta={"expression": expr, "sample": sample, "video_id": video_id,
-                                   "prompt": video_prompt(character_prompt(project), expr)})
+                                   "prompt": video_prompt(character_prompt(project), expr)}, shading=shading)
     vdir = project.path("videos", video_id)
     save_grid(grid, vdir)
     save_contact_sheet(grid, vdir / "contact_sheet.png")
-    key = content_key(source, views, frames)
+    key = content_key(source, views, frames, shading)
     mark_done(vdir, key, backend=grid.backend)
     load_grid(vdir)  # what the next stage will read: check it now
-    print(f"imported {grid.num_views} views x {grid.num_frames} frames into {vdir}")
+    print(f"imported {grid.num_views} views x {grid.num_frames} frames into {vdir} "
+          f"(masks from {grid.meta['masks_from']}, shading {shading})")
 
 
 __all__ = ["videos_command", "EXPRESSIONS"]

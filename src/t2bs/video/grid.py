@@ -266,16 +266,22 @@ def _read_frames(frames_dir: Path, fmt: str, nv: int, nt: int, h: int, w: int, s
     return out
 
 
-def read_rgb(path: Path, src: str | None = None) -> np.ndarray:
-    """[H, W, 3] uint8 from an image file (alpha composited over white, grey expanded)."""
+def read_rgb(path: Path, src: str | None = None, alphas: list | None = None) -> np.ndarray:
+    """[H, W, 3] uint8 from an image file (alpha composited over white, grey expanded).
+
+    ``alphas``: if given, the image's alpha channel [H, W] uint8 (or None) is appended to it."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
+            alpha = None
             if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
                 im = im.convert("RGBA")
+                alpha = np.asarray(im, dtype=np.uint8)[..., 3].copy()
                 bg = Image.new("RGBA", im.size, (255, 255, 255, 255))
                 im = Image.alpha_composite(bg, im)
+            if alphas is not None:
+                alphas.append(alpha)
             return np.asarray(im.convert("RGB"), dtype=np.uint8)
     except FileNotFoundError:
         raise UserError(f"{src or path}: {path.name} missing") from None
@@ -305,13 +311,28 @@ def _has_pyav() -> bool:
     return True
 
 
+def masks_from_frames(frames: np.ndarray, tolerance: int = 12) -> np.ndarray:
+    """[..., H, W, 3] uint8 frames on a plain background -> [..., H, W] bool foreground.
+
+    The background colour of each frame is keyed from its border (median of the outermost pixels:
+    4D video models and our renders put the character on a uniform, usually white, ground); a
+    pixel is foreground where any channel differs from it by more than ``tolerance``.
+    """
+    f = np.asarray(frames)
+    border = np.concatenate([f[..., 0, :, :], f[..., -1, :, :], f[..., :, 0, :], f[..., :, -1, :]], axis=-2)
+    key = np.median(border, axis=-2).astype(np.int16)  # [..., 3]
+    diff = np.abs(f.astype(np.int16) - key[..., None, None, :]).max(axis=-1)
+    return diff > tolerance
+
+
 # ---------------------------------------------------------------------------------------------
 # Importer for grids written by SV4D-style 4D video models.
 
 
 def import_image_grid(source: str | os.PathLike, views: int | None = None, frames: int | None = None,
                       cameras: list[Camera] | str | os.PathLike | None = None, canonical_view: int | None = None,
-                      fps: float = 8.0, backend: str = "sv4d-import", meta: dict | None = None) -> VideoGrid:
+                      fps: float = 8.0, backend: str = "sv4d-import", meta: dict | None = None,
+                      shading: str | None = None) -> VideoGrid:
     """A V x T image grid written by a 4D video model -> VideoGrid.
 
     ``source`` is one of
@@ -324,21 +345,37 @@ def import_image_grid(source: str | os.PathLike, views: int | None = None, frame
     ``cameras`` is a list of Camera, a cameras.json path, or None for the paper's orbit
     (``orbit_cameras(V)``: azimuth -60..60, the middle view canonical). Every count and size is
     checked; a mismatch is a one-line UserError.
+
+    Masks are kept: from the images' alpha where every image has one, else keyed from the plain
+    background (``masks_from_frames``). ``shading`` (unlit or lambert: how the mesh render the 4D
+    model started from was lit) goes into meta["grid_config"], where VCDGS reads it for its
+    static fit; None records nothing (VCDGS then assumes lambert).
     """
     source = Path(source)
     if not source.exists():
         raise UserError(f"{source}: no such image grid (a file or a folder)")
+    if shading not in (None, "unlit", "lambert"):
+        raise UserError(f"shading must be unlit or lambert, got {shading!r}")
+    alphas: list = []  # alpha channels of the images read (None where an image has none)
     if source.is_file():
         if views is None or frames is None:
             raise UserError(f"{source}: a single grid image needs --views and --frames (rows x columns)")
-        big = read_rgb(source)
+        big = read_rgb(source, alphas=alphas)
         gh, gw = big.shape[:2]
         if gh % views or gw % frames:
             raise UserError(f"{source}: a {gw}x{gh} image does not split into {views} rows x {frames} columns of equal tiles")
         th, tw = gh // views, gw // frames
         data = big.reshape(views, th, frames, tw, 3).transpose(0, 2, 1, 3, 4)  # [V, T, th, tw, 3]
+        if alphas[0] is not None:
+            alphas = [alphas[0].reshape(views, th, frames, tw).transpose(0, 2, 1, 3)]
     else:
-        data = _import_folder(source, views, frames)
+        data = _import_folder(source, views, frames, alphas)
+    if alphas and all(a is not None for a in alphas):
+        masks = np.asarray(alphas).reshape(data.shape[:4]) > 127  # [V, T, H, W]
+        mask_source = "alpha"
+    else:
+        masks = masks_from_frames(data)
+        mask_source = "background key"
     nv, nt = data.shape[:2]
     if views is not None and nv != views:
         raise UserError(f"{source}: found {nv} views but {views} were expected")
@@ -367,8 +404,10 @@ def import_image_grid(source: str | os.PathLike, views: int | None = None, frame
         cams = [c if (c.width, c.height) == (w, h) else c.resized(w, h) for c in cams]
         canon = canonical_view_index(nv) if canonical_view is None else canonical_view
     times = (np.arange(nt, dtype=np.float32) / np.float32(fps)).astype(np.float32)
-    grid = VideoGrid(np.ascontiguousarray(data), cams, times, int(canon), None, None, backend,
-                     {"fps": fps, "source": str(source), **(meta or {})})
+    info = {"fps": fps, "source": str(source), "masks_from": mask_source, **(meta or {})}
+    if shading is not None:
+        info["grid_config"] = {**(info.get("grid_config") or {}), "shading": shading}
+    grid = VideoGrid(np.ascontiguousarray(data), cams, times, int(canon), masks, None, backend, info)
     return grid.validate(str(source))
 
 
@@ -383,7 +422,7 @@ def _stack(images: list[np.ndarray], src: str, what: str) -> np.ndarray:
     return np.stack(images)
 
 
-def _import_folder(source: Path, views: int | None, frames: int | None) -> np.ndarray:
+def _import_folder(source: Path, views: int | None, frames: int | None, alphas: list | None = None) -> np.ndarray:
     entries = sorted((p for p in source.iterdir() if not p.name.startswith(".")), key=_natural_key)
     subdirs = [p for p in entries if p.is_dir()]
     images = [p for p in entries if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
@@ -395,7 +434,7 @@ def _import_folder(source: Path, views: int | None, frames: int | None) -> np.nd
             imgs = sorted((p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
             if not imgs:
                 raise UserError(f"{d}: no images in this view folder")
-            per_view.append(_stack([read_rgb(p) for p in imgs], str(d), "frames"))
+            per_view.append(_stack([read_rgb(p, alphas=alphas) for p in imgs], str(d), "frames"))
         counts = {len(x) for x in per_view}
         if len(counts) != 1:
             raise UserError(f"{src}: view folders hold different frame counts {sorted(counts)}")
@@ -412,6 +451,6 @@ def _import_folder(source: Path, views: int | None, frames: int | None) -> np.nd
         if len(images) % views:
             raise UserError(f"{src}: {len(images)} images do not split into {views} views")
         nt = len(images) // views
-        data = _stack([read_rgb(p) for p in images], src, "images")
+        data = _stack([read_rgb(p, alphas=alphas) for p in images], src, "images")
         return data.reshape(views, nt, *data.shape[1:])
     raise UserError(f"{src}: no images, view folders or videos found")
