@@ -37,7 +37,8 @@ def character_command(
     backend: str = typer.Option("procedural", help="procedural (offline), diffusers (Shap-E), command, file."),
     seed: int = typer.Option(0, help="Random seed: same prompt + seed -> same character."),
     checkpoint: Path = typer.Option(None, help="diffusers: local Shap-E folder (default ~/.cache/t2bs/checkpoints/shap-e)."),
-    command: str = typer.Option(None, help="command: template with {prompt} {out} {seed}; it writes a mesh into {out}."),
+    command: str = typer.Option(None, help="command: template with {prompt} {out} {seed}; it writes a mesh into {out}. Run without a shell (docs/HOSTILE_INPUTS.md)."),
+    command_timeout: float = typer.Option(3600.0, help="command: seconds before the command is killed (0 = no limit)."),
     mesh: Path = typer.Option(None, help="file: a mesh (.glb .gltf .vrm .obj .ply)."),
     steps: int = typer.Option(64, help="diffusers: denoising steps."),
     size: int = typer.Option(512, help="Render size in pixels."),
@@ -50,7 +51,7 @@ def character_command(
     if size < 16:
         raise UserError("--size must be >= 16")
     result = generate(prompt, backend=backend, seed=seed, checkpoint=checkpoint, command=command, mesh_path=mesh,
-                      steps=steps)
+                      steps=steps, command_timeout=command_timeout)
     for line in result.notices:
         print(f"notice: {line}")
     project = Project(out)

@@ -353,14 +353,9 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
     start = 0
     if checkpoint is not None and checkpoint.exists():
-        ck = torch.load(checkpoint, map_location=dev, weights_only=False)
-        if ck.get("key") == key:
-            model.load_state_dict(ck["model"])
-            for k, o in opts.items():
-                o.load_state_dict(ck["opts"][k])
-            gen.set_state(ck["gen"])
-            history = ck["history"]
-            start = int(ck["step"])
+        resumed = resume_checkpoint(checkpoint, key, model, opts, gen, cfg.iterations, dev)
+        if resumed is not None:
+            history, start = resumed
     bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
                total=cfg.iterations)
     model.train()
@@ -433,6 +428,57 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     model.eval()
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
     return history
+
+
+def resume_checkpoint(path: Path, key: str, model: VCDGSModel, opts: dict, gen: torch.Generator, iterations: int,
+                      dev) -> tuple[dict, int] | None:
+    """Load a training checkpoint into ``model``/``opts``/``gen``; (history, step), or None to start fresh.
+
+    A project folder may come from someone else, so nothing in it is executed: the file is read
+    with ``weights_only=True`` (tensors and plain containers only; a pickled callable is refused
+    by torch's restricted unpickler), and its key is checked before any state is used. A file that
+    does not load, belongs to other inputs or does not fit this model is removed with a warning,
+    and training starts fresh with the model untouched."""
+    import copy
+    import sys
+
+    def discard(why: str) -> None:
+        print(f"warning: {path}: {why}; discarded, training starts fresh", file=sys.stderr, flush=True)
+        path.unlink(missing_ok=True)
+
+    try:
+        ck = torch.load(path, map_location=dev, weights_only=True)
+    except Exception as exc:  # truncated zip, a pickle with code in it, not a torch file: all untrusted input
+        import pickle
+
+        why = ("it holds objects other than tensors and plain values (possibly code), refused unexecuted"
+               if isinstance(exc, pickle.UnpicklingError) else f"it is not a readable checkpoint ({type(exc).__name__})")
+        discard(f"checkpoint does not load: {why}")
+        return None
+    if not isinstance(ck, dict) or ck.get("key") != key:
+        discard("checkpoint belongs to other inputs or settings (its key differs)")
+        return None
+    step, history = ck.get("step"), ck.get("history")
+    if not isinstance(step, int) or not 0 <= step <= iterations or not isinstance(history, dict) \
+            or not isinstance(ck.get("opts"), dict) or set(ck["opts"]) != set(opts):
+        discard("checkpoint is malformed (step, history or optimiser state)")
+        return None
+    saved = (copy.deepcopy(model.state_dict()), {k: copy.deepcopy(o.state_dict()) for k, o in opts.items()}, gen.get_state())
+    try:
+        model.load_state_dict(ck["model"])
+        for k, o in opts.items():
+            o.load_state_dict(ck["opts"][k])
+        gen.set_state(ck["gen"])
+        if any(not torch.isfinite(p).all() for p in model.parameters()):
+            raise ValueError("non-finite parameters")
+    except Exception as exc:  # shapes of another model, a wrong generator state: restore what was there
+        model.load_state_dict(saved[0])
+        for k, o in opts.items():
+            o.load_state_dict(saved[1][k])
+        gen.set_state(saved[2])
+        discard(f"checkpoint does not fit this model ({type(exc).__name__})")
+        return None
+    return history, step
 
 
 @torch.no_grad()
