@@ -12,6 +12,7 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
+from t2bs.project import locked, read_array
 
 SOURCES = ("auto", "vcdgs", "gt")
 
@@ -31,10 +32,7 @@ def _grid_gt(folder: Path) -> tuple[np.ndarray | None, dict]:
     path = folder / "gt_vertices.npy"
     if not path.exists():
         return None, {}
-    try:
-        return np.load(path).astype(np.float32), {}
-    except (ValueError, OSError) as exc:
-        raise UserError(f"{path}: unreadable ({exc})") from None
+    return read_array(path, "ground-truth vertices", ndim=3, trailing=(3,)).astype(np.float32), {}
 
 
 def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[str, str], list[Path], str]:
@@ -56,10 +54,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
         if not recon:
             raise UserError(f"{root}: no finished reconstructions in recon/ (run `t2bs reconstruct {root}` or use --source gt)")
         for p in recon:
-            try:
-                captures[p.parent.name] = np.load(p).astype(np.float32)
-            except (ValueError, OSError) as exc:
-                raise UserError(f"{p}: unreadable ({exc})") from None
+            captures[p.parent.name] = read_array(p, "reconstructed vertices", ndim=3, trailing=(3,)).astype(np.float32)
             files.append(p)
             meta = root / "videos" / p.parent.name / "grid.json"
             if meta.exists():
@@ -82,6 +77,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
 # ------------------------------------------------------------------------ stage command
 
 
+@locked("project_dir", "blendshapes")  # one run at a time per project (issue 39)
 def blendshapes_command(
     project_dir: Path = typer.Argument(..., help="Project folder (character/mesh.glb + recon/ or videos/)."),
     components: int = typer.Option(100, "--components", "-k", help="Most shapes to keep (also capped by the data's rank)."),
@@ -96,11 +92,11 @@ def blendshapes_command(
     from t2bs.blendshapes.export import export_glb, export_usd
     from t2bs.blendshapes.model import build_model, save_model
     from t2bs.blendshapes.semantic import semantic_shapes
-    from t2bs.project import Project, content_key, is_done, mark_done, write_json
+    from t2bs.project import Project, content_key, invalidate, is_done, mark_done, write_json
 
     project = Project(project_dir)
-    if not project.root.is_dir():
-        raise UserError(f"{project_dir}: no such project folder")
+    if components < 1 or not (np.isfinite(fps) and fps > 0):
+        raise UserError(f"--components must be >= 1 and --fps a positive number (got {components}, {fps})")
     character = project.load_character()
     captures, expressions, files, used = load_captures(project.root, source)
     config = {"components": components, "source": used, "semantic": semantic, "animation": animation, "usd": usd, "fps": fps}
@@ -116,6 +112,7 @@ def blendshapes_command(
     if animation is not None and animation not in captures:
         raise UserError(f"--animation {animation!r}: no such capture; have {', '.join(sorted(captures))}")
     replay = animation or max(captures, key=lambda v: float(np.abs(captures[v] - character.vertices).max()))
+    invalidate(out)  # model.npz, model.glb and stats.json are rewritten from here: not done until all are
     save_model(model, out / "model.npz")
     export_glb(model, character, out / "model.glb", capture=replay, fps=fps)
     if usd:

@@ -9,6 +9,7 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
+from t2bs.project import locked
 
 # The paper's 10 characters (Tables in the appendix) and 6 more archetypes.
 GALLERY_PROMPTS = [
@@ -31,6 +32,7 @@ GALLERY_PROMPTS = [
 ]
 
 
+@locked("out", "character")  # one run at a time per project (issue 39)
 def character_command(
     prompt: str = typer.Argument(..., help="Text describing the character, e.g. \"a cartoon fox with big ears\"."),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder to create or update."),

@@ -202,8 +202,10 @@ def _read_beside(path: Path, uri: str, what: str) -> bytes:
         raise UserError(f"{path}: {what} uri {uri!r} is not a relative file name (only files beside the glTF are read)")
     folder = path.parent.resolve()
     target = (folder / unquote(uri)).resolve()
-    if not target.is_relative_to(folder) or target == folder:
+    if not target.is_relative_to(folder):
         raise UserError(f"{path}: {what} uri {uri!r} points outside the glTF file's folder; refused")
+    if target.is_dir():
+        raise UserError(f"{path}: {what} uri {uri!r} names a folder, not a file")
     if not target.is_file():
         raise UserError(f"{path}: {what} {uri!r} not found next to it")
     try:

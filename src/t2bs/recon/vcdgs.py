@@ -131,10 +131,14 @@ def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
                              for v in range(grid.num_views)])
     cams = [c.resized(*size) for c in grid.cameras]
     hold = {int(v) for v in cfg.holdout_views}
-    if grid.canonical_view in hold:
-        from t2bs.errors import UserError
+    from t2bs.errors import UserError
 
+    if grid.canonical_view in hold:
         raise UserError(f"the canonical view {grid.canonical_view} cannot be held out")
+    if any(not 0 <= v < grid.num_views for v in hold):
+        raise UserError(f"holdout_views {sorted(hold)}: the grid has views 0..{grid.num_views - 1}")
+    if grid.num_frames < 2:
+        raise UserError(f"the grid has {grid.num_frames} frame; VCDGS needs at least 2 (a rest frame and a moving one)")
     train_views = [v for v in range(grid.num_views) if v not in hold]
     shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
     return TrainData(images, masks, cams, int(grid.canonical_view), train_views,
@@ -211,7 +215,20 @@ def debias_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
 def _device(cfg: VCDGSConfig) -> torch.device:
     if cfg.device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    check_device(cfg.device)
     return torch.device(cfg.device)
+
+
+def check_device(device: str) -> None:
+    """UserError for a CUDA device this machine does not have (instead of torch's deep traceback)."""
+    from t2bs.errors import UserError
+
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {device}: no CUDA GPU is available to torch here (use --device cpu or auto)")
+        index = int(device.partition(":")[2] or 0) if device.partition(":")[2].isdigit() or device == "cuda" else -1
+        if not 0 <= index < torch.cuda.device_count():
+            raise UserError(f"--device {device}: this machine has CUDA devices 0..{torch.cuda.device_count() - 1}")
 
 
 def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) -> dict:

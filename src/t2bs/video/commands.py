@@ -22,13 +22,14 @@ from tqdm import tqdm
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_VIEWS, frontal_camera
-from t2bs.project import Project, content_key, is_done, mark_done
+from t2bs.project import Project, content_key, is_done, mark_done, output_set
 from t2bs.video.defects import preset
-from t2bs.video.grid import import_image_grid, load_grid, save_grid
+from t2bs.video.grid import VIDEO_SUFFIXES, import_image_grid, load_grid, save_grid
 from t2bs.video.prompts import (EXPRESSIONS, SAMPLES_PER_PROMPT, VideoJob, load_prompt_list, make_jobs,
                                 resolve_expressions, slug, video_prompt)
 from t2bs.video.sheets import save_contact_sheet
 from t2bs.video.synth import GridConfig, check_config, make_grid
+from t2bs.project import locked
 
 GRID_VERSION_KEY = "t2bs-videos-1"  # bump when the animator or defects change what a grid holds
 
@@ -54,6 +55,7 @@ def parse_expressions(prompts: str, backend: str) -> list[str]:
     return resolve_expressions(prompts, allow_custom=backend == "cogvideox")
 
 
+@locked("project_dir", "videos")  # one run at a time per project (issue 39)
 def videos_command(
     project_dir: Path = typer.Argument(..., help="Project folder (with character/mesh.glb)."),
     prompts: str = typer.Option("all", help="all, a comma list of expressions, or a prompt-list file (.txt one per line, .json)."),
@@ -109,15 +111,23 @@ def videos_command(
             t1 = time.perf_counter()
             grid = make_grid(mesh, job.expression, job.sample, seed, cfg, defect_cfg, renderer, prompt=job.prompt, progress=bar)
             grid.meta.update({"video_id": job.video_id, "character_prompt": character, "defect_preset": defects})
-            save_grid(grid, vdir)
-            save_contact_sheet(grid, vdir / "contact_sheet.png")
-            mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="procedural")
+            write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="procedural")
             made.append(job.video_id)
     seconds = time.perf_counter() - t0
     project.record_stage("videos", backend="procedural", config={**asdict(cfg), "defects": defects, "seed": seed, "samples": samples},
                          defects=asdict(defect_cfg), expressions=expressions,
                          videos=[j.video_id for j in jobs], made=len(made), skipped=len(skipped), seconds=round(seconds, 3))
     print(f"videos: {len(made)} made, {len(skipped)} up to date, in {project.path('videos')} ({seconds:.1f} s)")
+
+
+def write_grid_folder(grid, vdir: Path, key: str, **info) -> None:
+    """The grid, its contact sheet and done.json as one set (project.output_set): a run killed while
+    regenerating a grid leaves the previous grid and its done.json as they were, never the old
+    done.json beside new, half-written frames."""
+    with output_set(vdir, marker="done.json", exclusive=True) as stage:
+        save_grid(grid, stage)
+        save_contact_sheet(grid, stage / "contact_sheet.png")
+        mark_done(stage, key, **info)
 
 
 def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, cfg: GridConfig, steps: int, seed: int) -> None:
@@ -144,9 +154,7 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
         grid = fixed_view_grid(video, frontal_camera(front.shape[0]), vcfg.fps, {
             "prompt": job.prompt, "expression": job.expression, "sample": job.sample, "seed": seed,
             "video_id": job.video_id, "checkpoint": str(checkpoint), "cogvideox": asdict(vcfg)})
-        save_grid(grid, vdir)
-        save_contact_sheet(grid, vdir / "contact_sheet.png")
-        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="cogvideox")
+        write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="cogvideox")
     project.record_stage("videos", backend="cogvideox", checkpoint=str(checkpoint), config=asdict(vcfg),
                          videos=[j.video_id for j in jobs])
 
@@ -157,15 +165,15 @@ def _import(project: Project, source: Path, expression: str | None, sample: int,
     expr = resolve_expressions([expression], allow_custom=True)[0]
     video_id = f"{slug(expr)}-s{sample}"
     single = source.is_file()
-    grid = import_image_grid(source, views=views if single or views != ORBIT_VIEWS else None,
+    # A flat folder of images needs a view count, so --views counts even at its default (15);
+    # view sub-folders and view videos carry their own count, checked only when --views is changed.
+    flat = source.is_dir() and not any(p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES for p in source.iterdir())
+    grid = import_image_grid(source, views=views if single or flat or views != ORBIT_VIEWS else None,
                              frames=frames if single else None,
                              meta={"expression": expr, "sample": sample, "video_id": video_id,
                                    "prompt": video_prompt(character_prompt(project), expr)})
     vdir = project.path("videos", video_id)
-    save_grid(grid, vdir)
-    save_contact_sheet(grid, vdir / "contact_sheet.png")
-    key = content_key(source, views, frames)
-    mark_done(vdir, key, backend=grid.backend)
+    write_grid_folder(grid, vdir, content_key(source, views, frames), backend=grid.backend)
     load_grid(vdir)  # what the next stage will read: check it now
     print(f"imported {grid.num_views} views x {grid.num_frames} frames into {vdir}")
 
