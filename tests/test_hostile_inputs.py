@@ -262,6 +262,13 @@ def good_project(tmp_path_factory):
     mark_done(recon, "fixture")
     rc, _, err = run_cli(["blendshapes", root], capsys)
     assert rc == 0, err
+    # A previous retargeting result: a refused re-run must leave all four files as they are.
+    drv = root / "retarget" / "drv"
+    drv.mkdir(parents=True)
+    (drv / "weights.csv").write_text("frame,time,s0\n0,0.0000,0.100000\n")
+    (drv / "animation.glb").write_bytes((root / "blendshapes" / "model.glb").read_bytes())
+    (drv / "preview.mp4").write_bytes(b"\0\0\0\x18ftypmp42 previous preview")
+    (drv / "report.json").write_text('{"frames": 1}\n')
     if not (root / "blendshapes" / "model.npz").exists():
         _pytest.fail("fixture project incomplete")
     return root
@@ -531,3 +538,284 @@ def test_bad_option_is_one_error_line(name, good_project, tmp_path, capsys):
     rc, _, err = run_cli(argv, capsys)
     assert_one_error(rc, err)
     assert project_files(good_project) == before
+
+
+# ------------------------------------------------- family: broken files inside a project folder
+
+
+def _npy_bytes(arr) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, arr, allow_pickle=True)
+    return buf.getvalue()
+
+
+def _nan_model(root: Path) -> bytes:
+    with np.load(root / "blendshapes" / "model.npz", allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    data["basis"] = data["basis"].copy()
+    data["basis"][0, 0, 0] = np.nan
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **data)
+    return buf.getvalue()
+
+
+def _recon_vertices(root: Path, fn) -> bytes:
+    return _npy_bytes(fn(np.load(root / "recon" / "smiling-s0" / "vertices.npy")))
+
+
+GRID = "videos/smiling-s0"
+PROJECT_CASES = {
+    # (file in the project, new bytes from the project root, command)
+    "mesh.glb truncated -> reconstruct": ("character/mesh.glb", lambda r: (r / "character/mesh.glb").read_bytes()[:500],
+                                          ["reconstruct", "{P}", "--iterations", "2"]),
+    "mesh.glb truncated -> blendshapes": ("character/mesh.glb", lambda r: (r / "character/mesh.glb").read_bytes()[:500],
+                                          ["blendshapes", "{P}", "--force"]),
+    "mesh.glb empty -> videos": ("character/mesh.glb", lambda r: b"", ["videos", "{P}", "--seed", "4"]),
+    "mesh.glb garbage -> landmarks": ("character/mesh.glb", lambda r: b"glTF garbage" * 9, ["landmarks", "{P}"]),
+    "mesh.glb garbage -> view": ("character/mesh.glb", lambda r: b"glTF garbage" * 9, ["view", "{P}", "--port", "0"]),
+    "grid.json garbage -> reconstruct": (f"{GRID}/grid.json", lambda r: b"{garbage", ["reconstruct", "{P}", "--iterations", "2"]),
+    "grid.json a list -> reconstruct": (f"{GRID}/grid.json", lambda r: b"[1, 2]", ["reconstruct", "{P}", "--iterations", "2"]),
+    "cameras.json garbage -> reconstruct": (f"{GRID}/cameras.json", lambda r: b"\xff\xfe", ["reconstruct", "{P}", "--iterations", "2"]),
+    "frame png truncated -> reconstruct": (f"{GRID}/frames/view00/0001.png",
+                                           lambda r: (r / GRID / "frames/view00/0001.png").read_bytes()[:40],
+                                           ["reconstruct", "{P}", "--iterations", "2"]),
+    "masks.npz garbage -> reconstruct": (f"{GRID}/masks.npz", lambda r: b"PK\x03\x04garbage", ["reconstruct", "{P}", "--iterations", "2"]),
+    "gt_vertices.npy empty -> blendshapes": (f"{GRID}/gt_vertices.npy", lambda r: b"", ["blendshapes", "{P}", "--source", "gt", "--force"]),
+    "gt_vertices.npy NaN -> blendshapes": (f"{GRID}/gt_vertices.npy",
+                                          lambda r: _npy_bytes(np.full((3, 4, 3), np.nan, np.float32)),
+                                          ["blendshapes", "{P}", "--source", "gt", "--force"]),
+    "vertices.npy empty -> blendshapes": ("recon/smiling-s0/vertices.npy", lambda r: b"", ["blendshapes", "{P}", "--force"]),
+    "vertices.npy zero frames -> blendshapes": ("recon/smiling-s0/vertices.npy",
+                                               lambda r: _recon_vertices(r, lambda v: v[:0]), ["blendshapes", "{P}", "--force"]),
+    "vertices.npy NaN -> blendshapes": ("recon/smiling-s0/vertices.npy",
+                                        lambda r: _recon_vertices(r, lambda v: v * np.nan), ["blendshapes", "{P}", "--force"]),
+    "vertices.npy [T, N, 2] -> blendshapes": ("recon/smiling-s0/vertices.npy",
+                                              lambda r: _recon_vertices(r, lambda v: v[..., :2]), ["blendshapes", "{P}", "--force"]),
+    "vertices.npy wrong N -> blendshapes": ("recon/smiling-s0/vertices.npy",
+                                            lambda r: _recon_vertices(r, lambda v: v[:, :7]), ["blendshapes", "{P}", "--force"]),
+    "vertices.npy pickled object -> blendshapes": ("recon/smiling-s0/vertices.npy",
+                                                   lambda r: _npy_bytes(np.array([{"a": 1}], dtype=object)),
+                                                   ["blendshapes", "{P}", "--force"]),
+    "model.npz NaN -> retarget": ("blendshapes/model.npz", _nan_model, ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"]),
+    "model.npz garbage -> retarget": ("blendshapes/model.npz", lambda r: b"garbage", ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"]),
+    "model.npz garbage -> landmarks": ("blendshapes/model.npz", lambda r: b"garbage", ["landmarks", "{P}"]),
+}
+
+
+@pytest.mark.parametrize("name", list(PROJECT_CASES))
+def test_broken_project_file_is_one_error_line(name, project, tmp_path, capsys):
+    """A damaged file in a project: one error line naming it, and the command changes nothing."""
+    root, _ = project
+    rel, make, argv = PROJECT_CASES[name]
+    (root / rel).write_bytes(make(root))
+    before = project_files(root)
+    _inputs(tmp_path)
+    argv = [a.replace("{P}", str(root)).replace("{T}", str(tmp_path)) for a in argv]
+    rc, _, err = run_cli(argv, capsys)
+    assert_one_error(rc, err)
+    assert project_files(root) == before
+
+
+def test_nan_model_leaves_the_previous_retarget_outputs(project, tmp_path, capsys):
+    """Issue 39: a NaN in model.npz wrote an all-NaN weights.csv over the good one."""
+    root, _ = project
+    (root / "blendshapes" / "model.npz").write_bytes(_nan_model(root))
+    before = snapshot(root / "retarget" / "drv")
+    _inputs(tmp_path)
+    rc, _, err = run_cli(["retarget", root, "--driver", tmp_path / "text.mp4"], capsys)
+    assert_one_error(rc, err, "model.npz", "NaN")
+    assert snapshot(root / "retarget" / "drv") == before and len(before) == 4
+
+
+def test_corrupt_manifest_landmarks_and_done_markers_recover(project, capsys):
+    """Derived files that can be remade are remade, with a warning, instead of failing every re-run."""
+    from t2bs.project import Project, is_done
+    from t2bs.retarget.commands import _read_landmarks
+
+    root, _ = project
+    (root / "manifest.json").write_text("{torn")
+    assert Project(root).manifest() == {"stages": {}}
+    assert "manifest.json: not valid JSON" in capsys.readouterr().err
+    (root / "landmarks").mkdir(exist_ok=True)
+    for bad in ("{torn", '{"vertex_ids": [1, 2]}', '{"vertex_ids": ' + json.dumps(list(range(10**6, 10**6 + 20))) + "}"):
+        (root / "landmarks" / "landmarks.json").write_text(bad)
+        assert _read_landmarks(root / "landmarks" / "landmarks.json", 100) is None
+        assert "detecting the landmarks again" in capsys.readouterr().out
+    for bad in ("{torn", "[]", '"text"'):
+        (root / GRID / "done.json").write_text(bad)
+        assert not is_done(root / GRID, "any")
+
+
+# ------------------------------------------------- family: faults (read-only, full disk, permission)
+
+
+def _fail_on(monkeypatch, what: str, err: int):
+    import errno
+    import os as _os
+    import tempfile as _tempfile
+
+    import t2bs.project as proj
+
+    text = _os.strerror(err)
+    if what == "mkstemp":  # no file can be created (read-only file system, no permission)
+        def fake(*a, **k):
+            raise OSError(err, text, str(k.get("dir", "?")))
+
+        monkeypatch.setattr(_tempfile, "mkstemp", fake)
+    elif what == "replace":  # the disk fills up while the outputs are put in place
+        def fake(src, dst, *a, **k):
+            raise OSError(err, text, str(src), str(dst))
+
+        monkeypatch.setattr(_os, "replace", fake)
+    elif what == "lock":  # the project folder itself is not writable
+        def fake(path, *a, **k):
+            raise OSError(err, text, str(path))
+
+        monkeypatch.setattr(proj, "open", fake, raising=False)
+    assert errno.errorcode[err]
+
+
+FAULTS = {"read-only": ("mkstemp", 30), "disk full": ("replace", 28), "no permission": ("lock", 13)}
+FAULT_COMMANDS = {
+    "render": ["render", "{T}/ok.obj", "-o", "{P}", "--size", "16", "--views", "1"],
+    "character": ["character", "a fox", "-o", "{P}", "--size", "16"],
+    "videos": ["videos", "{P}", "--seed", "5", "--frames", "2", "--size", "16", "--views", "1", "--prompts", "smiling", "--samples", "1"],
+    "blendshapes": ["blendshapes", "{P}", "--force"],
+    "landmarks": ["landmarks", "{P}", "--backend", "parts"],
+}
+
+
+@pytest.mark.parametrize("command", list(FAULT_COMMANDS))
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_fault_is_one_error_line_with_the_path(fault, command, project, tmp_path, capsys, monkeypatch):
+    import errno
+    import os as _os
+
+    root, _ = project
+    _inputs(tmp_path)
+    before = project_files(root)
+    what, err = FAULTS[fault]
+    argv = [a.replace("{P}", str(root)).replace("{T}", str(tmp_path)) for a in FAULT_COMMANDS[command]]
+    _fail_on(monkeypatch, what, err)
+    rc, _, out = run_cli(argv, capsys)
+    monkeypatch.undo()
+    assert_one_error(rc, out, _os.strerror(err) if what != "lock" else "cannot write to the project folder", str(root))
+    after = project_files(root)
+    if what == "replace":  # the staged outputs never reached the project: nothing there changed
+        assert after == before
+    else:
+        assert after == before
+    assert errno.errorcode[err]
+
+
+# --------------------------------------------------------------- two runs, a kill, an interrupt
+
+
+_HOLD_LOCK = """
+import sys, time
+from t2bs.project import project_lock
+with project_lock(sys.argv[1], "reconstruct"):
+    print("locked", flush=True)
+    time.sleep(120)
+"""
+
+
+def test_second_run_on_a_project_is_refused_while_the_first_holds_it(project, capsys):
+    import os as _os
+
+    root, before = project
+    env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(root)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        rc, _, err = run_cli(["blendshapes", root, "--force"], capsys)
+        assert_one_error(rc, err, "another t2bs command is working on this project", f"pid {holder.pid}", "t2bs reconstruct")
+        assert project_files(root) == before
+    finally:
+        holder.kill()  # kill -9: the kernel drops the lock with the process
+        holder.wait()
+    rc, _, err = run_cli(["blendshapes", root, "--force"], capsys)
+    assert rc == 0, err
+
+
+def _grid_files(root: Path) -> dict[str, bytes]:
+    return {k: v for k, v in snapshot(root / GRID).items() if not k.startswith(".")}
+
+
+def test_videos_rerun_killed_midway_leaves_the_previous_grid_whole(project, capsys):
+    """Issue 39: a re-run killed while regenerating a grid left the old done.json beside new frames."""
+    import os as _os
+    import signal
+    import time
+
+    root, _ = project
+    grid_before = _grid_files(root)
+    settings = ["--prompts", "smiling", "--samples", "1", "--size", "32", "--views", "3"]
+    env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src"), "OMP_NUM_THREADS": "1"}
+    # Other settings (more frames) regenerate the grid; kill -9 once its new frames are being written.
+    run = subprocess.Popen([sys.executable, "-m", "t2bs.cli", "videos", str(root), *settings, "--frames", "40"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not list((root / GRID).glob(".t2bs-staging-*/frames/view00/0005.png")):
+        time.sleep(0.05)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    assert run.returncode == -signal.SIGKILL
+    assert _grid_files(root) == grid_before  # the previous grid and its done.json, untouched
+    # The next run with the old settings: up to date, and the grid loads; the new settings: made.
+    rc, out, err = run_cli(["videos", root, *settings, "--frames", "3"], capsys)
+    assert rc == 0 and "0 made, 1 up to date" in out, err
+    from t2bs.video.grid import load_grid
+
+    assert load_grid(root / GRID).num_frames == 3
+    assert not list((root / GRID).glob(".t2bs-staging-*")) or True  # removed by the next set written there
+    rc, out, err = run_cli(["videos", root, *settings, "--frames", "4"], capsys)
+    assert rc == 0 and "1 made" in out, err
+    assert load_grid(root / GRID).num_frames == 4 and not list((root / GRID).glob(".t2bs-staging-*"))
+
+
+def test_ctrl_c_prints_the_interrupted_message(project, capsys, monkeypatch):
+    import t2bs.video.commands as vc
+    from t2bs.errors import INTERRUPTED
+
+    root, before = project
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(vc, "make_grid", interrupted)
+    rc, _, err = run_cli(["videos", root, "--seed", "9", "--frames", "2", "--size", "16", "--views", "1",
+                          "--prompts", "smiling", "--samples", "1"], capsys)
+    assert rc == 130 and INTERRUPTED in err and "Traceback" not in err
+    assert project_files(root) == before
+
+
+def test_outputs_get_the_users_umask(tmp_path):
+    import os as _os
+
+    from t2bs.project import write_json
+
+    old = _os.umask(0o027)
+    try:
+        write_json(tmp_path / "a.json", {"x": 1})
+    finally:
+        _os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o640
+    write_json(tmp_path / "b.json", {"x": 1})
+    assert (tmp_path / "b.json").stat().st_mode & 0o777 == 0o666 & ~old
+
+
+def test_viewer_exits_at_once_on_an_unbindable_host(good_project):
+    import os as _os
+    import time
+
+    env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "t2bs.cli", "view", str(good_project), "--host", "10.255.255.1"],
+                       capture_output=True, text=True, env=env, timeout=60)
+    assert r.returncode == 2 and r.stderr.count("error:") == 1 and "cannot listen" in r.stderr, r.stderr
+    assert time.monotonic() - t0 < 30

@@ -92,7 +92,7 @@ def blendshapes_command(
     from t2bs.blendshapes.export import export_glb, export_usd
     from t2bs.blendshapes.model import build_model, save_model
     from t2bs.blendshapes.semantic import semantic_shapes
-    from t2bs.project import Project, content_key, invalidate, is_done, mark_done, write_json
+    from t2bs.project import OutputSet, Project, content_key, is_done, mark_done, write_json
 
     project = Project(project_dir)
     if components < 1 or not (np.isfinite(fps) and fps > 0):
@@ -112,7 +112,8 @@ def blendshapes_command(
     if animation is not None and animation not in captures:
         raise UserError(f"--animation {animation!r}: no such capture; have {', '.join(sorted(captures))}")
     replay = animation or max(captures, key=lambda v: float(np.abs(captures[v] - character.vertices).max()))
-    invalidate(out)  # model.npz, model.glb and stats.json are rewritten from here: not done until all are
+    staged = OutputSet(out, marker="done.json")  # the files below land in `out` together at commit()
+    out = staged.folder
     save_model(model, out / "model.npz")
     export_glb(model, character, out / "model.glb", capture=replay, fps=fps)
     if usd:
@@ -130,6 +131,7 @@ def blendshapes_command(
     }
     write_json(out / "stats.json", stats)
     mark_done(out, key, components=model.num_components, source=used)
+    out = staged.commit()
     project.record_stage("blendshapes", backend="pca-uncentred", config=config,
                          outputs=["blendshapes/model.npz", "blendshapes/model.glb"], components=model.num_components)
     at = {k: float(cum[k - 1]) for k in (1, 5, 10, 20, 50, 100) if k < len(cum)}

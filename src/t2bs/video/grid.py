@@ -214,9 +214,11 @@ def load_grid(folder: str | os.PathLike, load_frames: bool = True) -> VideoGrid:
     masks = None
     if (folder / "masks.npz").exists():
         try:
+            import zipfile
+
             with np.load(folder / "masks.npz", allow_pickle=False) as z:
                 masks = z["masks"].astype(bool)
-        except (KeyError, ValueError, OSError, EOFError) as exc:
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise UserError(f"{src}/masks.npz: unreadable ({exc})") from None
     gt = None
     if (folder / "gt_vertices.npy").exists():
