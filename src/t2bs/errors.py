@@ -57,10 +57,14 @@ def exit_on_user_error(app) -> None:
 
 def os_error_line(exc: OSError) -> str:
     """One line for an OSError: the path(s) and what the system said (read-only, no space, ...)."""
-    where = exc.filename if exc.filename is not None else None
+    def short(name) -> str:
+        name = str(name)
+        return name if len(name) <= 200 else name[:200] + f"... ({len(name)} characters)"
+
+    where = short(exc.filename) if exc.filename is not None else None
     what = exc.strerror or str(exc) or type(exc).__name__
     if where is not None and exc.filename2 is not None:
-        return f"{where} -> {exc.filename2}: {what}"
+        return f"{where} -> {short(exc.filename2)}: {what}"
     return f"{where}: {what}" if where is not None else what
 
 

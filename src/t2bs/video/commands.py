@@ -48,7 +48,11 @@ def character_prompt(project: Project) -> str:
 def parse_expressions(prompts: str, backend: str) -> list[str]:
     """'all', a comma list, or a prompt-list file (text or JSON)."""
     path = Path(prompts)
-    if prompts.strip().lower() != "all" and (path.suffix.lower() in (".txt", ".json") or path.is_file()):
+    try:
+        is_file = path.is_file()
+    except OSError:  # a long prompt list is not a file name (ENAMETOOLONG)
+        is_file = False
+    if prompts.strip().lower() != "all" and (path.suffix.lower() in (".txt", ".json") or is_file):
         items = load_prompt_list(path)
         # A video model takes any text; the offline animator checks words when it animates.
         return resolve_expressions(items, allow_custom=True)
