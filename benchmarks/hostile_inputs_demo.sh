@@ -53,14 +53,18 @@ echo "case 2: rc=$? prompt executed: $([ -e "$WORK/pwned-template" ] && echo YES
 t2bs videos "$P" "${VID[@]}" --frames 40 --size 96 >/dev/null 2>&1 &
 RUN=$!
 for _ in $(seq 3000); do  # until it writes frames (in place before, in a staging folder after)
-  ls "$P"/videos/smiling-s0/frames/view00/0005.png "$P"/videos/smiling-s0/.t2bs-staging-*/frames/view00/0000.png \
-     >/dev/null 2>&1 && break
+  [ -e "$P/videos/smiling-s0/frames/view00/0005.png" ] && break
+  compgen -G "$P/videos/smiling-s0/.t2bs-staging-*/frames/view00/0000.png" >/dev/null && break
   sleep 0.02
 done
-kill -9 $RUN && echo "case 3: killed the re-run while it wrote frames"; wait $RUN 2>/dev/null
+KEY=$(grep -o '"key": "[0-9a-f]*"' "$P/videos/smiling-s0/done.json")
+kill -9 $RUN; wait $RUN 2>/dev/null
+echo "case 3: killed; the grid folder now holds $(ls "$P/videos/smiling-s0/frames/view00" | wc -l) view-0 frames," \
+     "grid.json: $([ -e "$P/videos/smiling-s0/grid.json" ] && echo yes || echo MISSING)," \
+     "done.json: $([ "$(grep -o '"key": "[0-9a-f]*"' "$P/videos/smiling-s0/done.json" 2>/dev/null)" = "$KEY" ] && echo 'the old one' || echo 'gone or new')"
 OUT=$(t2bs videos "$P" "${VID[@]}" --frames 3 2>&1 | tail -1)
-FRAMES=$(python3 -c "from t2bs.video.grid import load_grid; print(load_grid('$P/videos/smiling-s0').num_frames)" 2>&1 | tail -1)
-echo "case 3: after kill -9 the re-run says: ${OUT:0:60} | grid loads with: ${FRAMES:0:100}"
+REC3=$(t2bs reconstruct "$P" --iterations 1 --set static_iters=1 --set resolution=16 --no-preview 2>&1 | grep -oE "error: .*|Traceback.*|reconstruct: [0-9]+ reconstructed" | head -1)
+echo "case 3: then the old settings again: ${OUT:0:45} | reconstruct: ${REC3:0:90}"
 
 # 4. A NaN in blendshapes/model.npz with a previous retargeting result in place.
 t2bs blendshapes "$P" --source gt --force >/dev/null 2>&1

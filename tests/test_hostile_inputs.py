@@ -753,8 +753,10 @@ def test_videos_rerun_killed_midway_leaves_the_previous_grid_whole(project, caps
     import signal
     import time
 
+    from t2bs.project import content_key
+
     root, _ = project
-    grid_before = _grid_files(root)
+    grid_before, key_before = _grid_files(root), content_key(root / GRID)
     settings = ["--prompts", "smiling", "--samples", "1", "--size", "32", "--views", "3"]
     env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src"), "OMP_NUM_THREADS": "1"}
     # Other settings (more frames) regenerate the grid; kill -9 once its new frames are being written.
@@ -767,6 +769,7 @@ def test_videos_rerun_killed_midway_leaves_the_previous_grid_whole(project, caps
     run.wait()
     assert run.returncode == -signal.SIGKILL
     assert _grid_files(root) == grid_before  # the previous grid and its done.json, untouched
+    assert content_key(root / GRID) == key_before  # the killed run's staging folder is not content
     # The next run with the old settings: up to date, and the grid loads; the new settings: made.
     rc, out, err = run_cli(["videos", root, *settings, "--frames", "3"], capsys)
     assert rc == 0 and "0 made, 1 up to date" in out, err
@@ -837,3 +840,14 @@ def test_import_grid_takes_a_flat_folder_with_the_default_views(project, tmp_pat
     assert rc == 0, err
     grid = load_grid(root / "videos" / "smiling-s1")
     assert grid.frames.shape == (15, 2, 16, 16, 3) and grid.frames[1, 0, 0, 0, 0] == 16  # view 1, frame 0 = image 2
+
+
+def test_lock_is_reentrant_and_a_failed_command_leaves_no_new_folder(tmp_path, capsys):
+    from t2bs.project import LOCK_NAME, project_lock
+
+    with project_lock(tmp_path / "p", "create"):
+        with project_lock(tmp_path / "p", "character"):  # `t2bs create` runs the stage commands
+            assert (tmp_path / "p" / LOCK_NAME).read_text().startswith("pid ")
+    rc, _, err = run_cli(["render", tmp_path / "none.glb", "-o", tmp_path / "new"], capsys)
+    assert_one_error(rc, err, "no such file")
+    assert not (tmp_path / "new").exists()

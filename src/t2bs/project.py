@@ -114,7 +114,9 @@ def content_key(*parts: Any) -> str:
     for part in parts:
         if isinstance(part, Path):
             if part.is_dir():
-                for f in sorted(p for p in part.rglob("*") if p.is_file() and not p.name.startswith(".")):
+                # Hidden files and folders (temp files, a killed run's .t2bs-staging-*) are not content.
+                for f in sorted(p for p in part.rglob("*")
+                                if p.is_file() and not any(x.startswith(".") for x in p.relative_to(part).parts)):
                     h.update(str(f.relative_to(part)).encode())
                     h.update(_file_digest(f))
             else:

@@ -77,8 +77,17 @@ def check_mesh_size(vertices: int, faces: int, source: str) -> None:
 
 
 def _load_gltf(path: Path) -> Mesh:
+    import warnings
+
+    if path.suffix.lower() in (".glb", ".vrm"):
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        if magic != b"glTF":
+            raise UserError(f"{path}: not a readable glTF/GLB file (it does not start with the GLB header)")
     try:
-        gltf = pygltflib.GLTF2().load(str(path))
+        with warnings.catch_warnings():  # pygltflib warns in several lines about odd files; the error says it in one
+            warnings.simplefilter("ignore")
+            gltf = pygltflib.GLTF2().load(str(path))
     except Exception as exc:  # pygltflib raises many types on garbage input
         raise UserError(f"{path}: not a readable glTF/GLB file ({type(exc).__name__})") from None
     if gltf is None or not gltf.meshes:
