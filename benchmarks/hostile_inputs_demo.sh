@@ -50,7 +50,7 @@ t2bs character "a fox \$(touch $WORK/pwned-template)" -o "$WORK/cmd" --size 16 -
 echo "case 2: rc=$? prompt executed: $([ -e "$WORK/pwned-template" ] && echo YES || echo no)"
 
 # 3. A videos re-run (other settings) killed with -9 while it writes the new grid, then the old settings again.
-t2bs videos "$P" "${VID[@]}" --frames 40 --size 96 >/dev/null 2>&1 &
+python3 -m t2bs.cli videos "$P" "${VID[@]}" --frames 40 --size 96 >/dev/null 2>&1 &  # not the function: $! is python
 RUN=$!
 for _ in $(seq 3000); do  # until it writes frames (in place before, in a staging folder after)
   [ -e "$P/videos/smiling-s0/frames/view00/0005.png" ] && break

@@ -174,13 +174,13 @@ def test_command_template_never_runs_the_prompt(tmp_path, monkeypatch, quote):
     script = tmp_path / "gen.py"
     script.write_text(_WRITE_MESH)
     seen = []
-    real = backends.run_command
+    real = backends.run_argv
 
     def spy(argv, timeout, env=None):
         seen.append(argv)
         return real(argv, timeout, env)
 
-    monkeypatch.setattr(backends, "run_command", spy)
+    monkeypatch.setattr(backends, "run_argv", spy)
     for i, hostile in enumerate(_HOSTILE_PROMPTS):
         marker = tmp_path / f"pwned{i}"
         prompt = hostile.format(m=marker)
@@ -196,6 +196,8 @@ def test_command_template_refusals_and_timeout(tmp_path):
 
     for tmpl, says in ((f"sh -c 'gen --prompt {{prompt}} --out {{out}}'", "shell script"),
                        (f"bash -lc \"x {{prompt}}\" {{out}}", "shell script"),
+                       ("python3 -c \"print('{prompt}')\" {out}", "inline code"),
+                       ("/usr/bin/env perl -e 'print q({prompt})' {out}", "inline code"),
                        ("gen {prompt.__class__} {out}", "unknown placeholder {prompt.__class__}"),
                        ("gen {prompt!r} {out}", "unknown placeholder {prompt!r}"),
                        ("gen {0} {out}", "unknown placeholder {0}"),

@@ -130,6 +130,7 @@ def shap_e_to_mesh(decoded) -> Mesh:
 COMMAND_TIMEOUT_S = 3600.0  # default limit of a --command run (a 3D generator on a GPU takes minutes)
 _PLACEHOLDERS = ("prompt", "out", "seed")
 _SHELLS = {"sh", "bash", "dash", "zsh", "ksh", "fish", "csh", "tcsh", "cmd", "cmd.exe", "powershell", "pwsh"}
+_INTERPRETERS = ("python", "perl", "ruby", "node", "php", "lua", "rscript")  # their -c / -e run inline code
 
 
 def command_argv(template: str, prompt: str, out: Path, seed: int) -> list[str]:
@@ -162,23 +163,32 @@ def command_argv(template: str, prompt: str, out: Path, seed: int) -> list[str]:
         if i == 0 and fields:
             raise UserError("--command template: the program name cannot be a placeholder")
         if any(name == "prompt" for _, name, _, _ in fields) and _runs_shell_script(args, i):
-            raise UserError("--command template passes {prompt} into a shell script, which would run what the prompt "
-                            "contains; pass it as its own argument, or read \"$T2BS_PROMPT\" in the script")
+            raise UserError("--command template passes {prompt} into a shell script or inline code (-c/-e), which would "
+                            "run what the prompt contains; pass it as its own argument, or read \"$T2BS_PROMPT\" "
+                            "in the script")
         argv.append(arg.format(**values))  # also turns {{ }} into literal braces
     return argv
 
 
 def _runs_shell_script(args: list[str], i: int) -> bool:
-    """True when argument ``i`` is a shell's -c script (``sh -c SCRIPT``, ``bash -lc SCRIPT``, ``env sh -c``)."""
+    """True when argument ``i`` is code for an interpreter (``sh -c SCRIPT``, ``bash -lc``, ``python -c``,
+    ``perl -e``, ``node --eval``, ``cmd /c``): there the prompt would be parsed as code, not passed as text."""
     for j in range(i):
         name = Path(args[j]).name.lower()
-        if name in _SHELLS:
-            flags = args[j + 1:i]
-            return any(f.startswith("-") and "c" in f.lstrip("-") for f in flags) or name.startswith(("cmd", "pwsh", "powershell"))
+        if name in _SHELLS or name.startswith(_INTERPRETERS):
+            if name.startswith(("cmd", "pwsh", "powershell")):
+                return True
+            for k in range(j + 1, i):  # the interpreter's own options, up to its script or code
+                flag = args[k]
+                if not flag.startswith("-"):
+                    return False  # a script file: the prompt is one of its arguments
+                if flag in ("--eval", "--print", "--command") or (not flag.startswith("--") and set(flag[1:]) & set("cep")):
+                    return i == k + 1  # the argument after -c / -e is code
+            return False
     return False
 
 
-def run_command(argv: list[str], timeout: float | None, env: dict | None = None) -> subprocess.CompletedProcess:
+def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run ``argv`` without a shell; past ``timeout`` seconds its whole process group is killed (UserError)."""
     import signal
 
@@ -220,7 +230,7 @@ def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: fl
         out.mkdir()
         argv = command_argv(template, prompt, out, seed)
         env = {**os.environ, "T2BS_PROMPT": prompt, "T2BS_OUT": str(out), "T2BS_SEED": str(int(seed))}
-        proc = run_command(argv, timeout or None, env)
+        proc = run_argv(argv, timeout or None, env)
         line = shlex.join(argv)
         if proc.returncode != 0:
             tail = (proc.stderr.strip() or proc.stdout.strip() or "no output").splitlines()[-1]
