@@ -853,3 +853,31 @@ def test_lock_is_reentrant_and_a_failed_command_leaves_no_new_folder(tmp_path, c
     rc, _, err = run_cli(["render", tmp_path / "none.glb", "-o", tmp_path / "new"], capsys)
     assert_one_error(rc, err, "no such file")
     assert not (tmp_path / "new").exists()
+
+
+def test_output_set_replaces_a_set_whole_or_not_at_all(tmp_path):
+    import gc
+
+    from t2bs.project import STAGING_PREFIX, OutputSet, output_set
+
+    final = tmp_path / "out"
+    final.mkdir()
+    for name, text in (("weights.csv", "old"), ("report.json", "old"), ("mine.txt", "the user's")):
+        (final / name).write_text(text)
+    with pytest.raises(RuntimeError):  # a failure half-way: nothing in `final` changed, no staging left
+        with output_set(final, marker="report.json") as stage:
+            (stage / "weights.csv").write_text("new")
+            raise RuntimeError("solve failed")
+    assert {p.name: p.read_text() for p in final.iterdir()} == {"weights.csv": "old", "report.json": "old", "mine.txt": "the user's"}
+    staged = OutputSet(final, marker="report.json")  # never committed: removed when the object goes
+    (staged.folder / "weights.csv").write_text("half")
+    del staged
+    gc.collect()
+    assert not list(final.glob(STAGING_PREFIX + "*"))
+    with output_set(final, marker="report.json") as stage:
+        for name in ("weights.csv", "report.json"):
+            (stage / name).write_text("new")
+    assert {p.name: p.read_text() for p in final.iterdir()} == {"weights.csv": "new", "report.json": "new", "mine.txt": "the user's"}
+    with output_set(final, marker="done.json", exclusive=True) as stage:  # a folder that holds only this set
+        (stage / "done.json").write_text("{}")
+    assert sorted(p.name for p in final.iterdir()) == ["done.json"]
