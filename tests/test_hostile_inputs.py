@@ -194,8 +194,8 @@ def test_command_template_never_runs_the_prompt(tmp_path, monkeypatch, quote):
 def test_command_template_refusals_and_timeout(tmp_path):
     from t2bs.character.backends import generate
 
-    for tmpl, says in ((f"sh -c 'gen --prompt {{prompt}} --out {{out}}'", "shell script"),
-                       (f"bash -lc \"x {{prompt}}\" {{out}}", "shell script"),
+    for tmpl, says in (("sh -c 'gen --prompt {prompt} --out {out}'", "shell script"),
+                       ("bash -lc \"x {prompt}\" {out}", "shell script"),
                        ("python3 -c \"print('{prompt}')\" {out}", "inline code"),
                        ("/usr/bin/env perl -e 'print q({prompt})' {out}", "inline code"),
                        ("gen {prompt.__class__} {out}", "unknown placeholder {prompt.__class__}"),

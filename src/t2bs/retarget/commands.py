@@ -121,7 +121,6 @@ def retarget_command(
     from t2bs.geometry.io import save_mesh
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.retarget.face_tracking import TrackConfig, read_driver, track_face
-    from t2bs.retarget.landmarks import Landmarks
     from t2bs.retarget.solve import RetargetSolver
     from t2bs.retarget.transfer import transfer_motion
 
