@@ -166,7 +166,7 @@ def test_command_backend(tmp_path):
         "out, seed = sys.argv[1], int(sys.argv[2])\n"
         "m = trimesh.creation.box(extents=(1, 2, 3 + seed))\n"
         "m.export(out + '/mesh.obj')\n")
-    tmpl = f"{sys.executable} {script} {{out}} {{seed}} # {{prompt}}"
+    tmpl = f"{sys.executable} {script} {{out}} {{seed}} {{prompt}}"
     r = generate("a box", backend="command", command=tmpl, seed=1)
     assert r.info["backend"] == "command" and abs(r.mesh.bbox_diagonal() - CANONICAL_DIAGONAL) < 1e-4
     ext = r.mesh.vertices.max(0) - r.mesh.vertices.min(0)

@@ -10,7 +10,7 @@ import sys
 
 import typer
 
-from t2bs.errors import exit_on_user_error
+from t2bs.errors import INTERRUPTED, exit_on_user_error
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Text or any character mesh -> animatable blendshape rig (T2Bs).")
@@ -63,9 +63,9 @@ bench_app.command("retarget")(_retarget.bench_retarget)
 
 def main() -> None:
     try:
-        exit_on_user_error(app)
-    except KeyboardInterrupt:
-        print("interrupted; finished jobs are kept, re-run to resume", file=sys.stderr)
+        exit_on_user_error(app)  # also prints the interrupted message (typer turns Ctrl-C into exit 130)
+    except KeyboardInterrupt:  # Ctrl-C outside typer's call (while importing, while exiting)
+        print(INTERRUPTED, file=sys.stderr)
         sys.exit(130)
 
 

@@ -20,6 +20,7 @@ from t2bs.geometry.camera import ORBIT_VIEWS, frontal_camera, orbit_cameras
 from t2bs.geometry.io import load_mesh, save_mesh
 from t2bs.geometry.mesh import Mesh, detect_facing, normalize
 from t2bs.project import Project, content_key, is_done, mark_done, write_image, write_json
+from t2bs.project import locked
 
 
 @dataclass
@@ -73,6 +74,7 @@ def render_project(mesh: Mesh, out_dir: Path, backend_info: dict, config: Render
     return renders
 
 
+@locked("out", "render")  # one run at a time per project (issue 39)
 def render_command(
     mesh: Path = typer.Argument(..., help="Character mesh: .glb .gltf .vrm .obj .ply (morph targets are kept)."),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder to create or update."),

@@ -20,6 +20,7 @@ import typer
 
 from t2bs.errors import UserError
 from t2bs.project import Project, read_json, write_json
+from t2bs.project import locked
 
 # The quick preset's default prompt subset: the expressions that move the most distinct regions
 # (eyes, jaw, mouth corners), so the blendshape model spans them within the CPU time budget.
@@ -65,6 +66,7 @@ def invoke(command, **kwargs):
     return command(**args)
 
 
+@locked("out", "create")  # one run at a time per project (issue 39)
 def create_command(
     prompt: str = typer.Argument(..., help="Text describing the character, e.g. \"a cartoon fox with big ears\"."),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder (created, or resumed if it exists)."),

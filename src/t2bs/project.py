@@ -14,12 +14,15 @@ import hashlib
 import json
 import os
 import platform
+import sys
 import tempfile
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+from t2bs.errors import UserError
 
 
 @contextlib.contextmanager
@@ -32,10 +35,19 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.exists():  # mkstemp made it 0600: give it the mode a plain open() would (user's umask)
+            os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _umask() -> int:
+    """The process umask (read by setting it and putting it back: there is no getter before 3.13)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
@@ -45,7 +57,18 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
 
 
 def read_json(path: str | os.PathLike) -> Any:
-    return json.loads(Path(path).read_text())
+    """Parse a JSON file; a corrupt one is an InvalidJsonError (a UserError and a ValueError) naming it."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        where = f", line {exc.lineno}" if isinstance(exc, json.JSONDecodeError) else ""
+        raise InvalidJsonError(f"{path}: not valid JSON ({getattr(exc, 'msg', 'not UTF-8 text')}{where})") from None
+
+
+class InvalidJsonError(UserError, ValueError):
+    """A project or input JSON file that does not parse: one error line for the CLI, and still the
+    ValueError that callers which recover from bad JSON (is_done, camera lists) catch."""
 
 
 def write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
@@ -91,7 +114,9 @@ def content_key(*parts: Any) -> str:
     for part in parts:
         if isinstance(part, Path):
             if part.is_dir():
-                for f in sorted(p for p in part.rglob("*") if p.is_file() and not p.name.startswith(".")):
+                # Hidden files and folders (temp files, a killed run's .t2bs-staging-*) are not content.
+                for f in sorted(p for p in part.rglob("*")
+                                if p.is_file() and not any(x.startswith(".") for x in p.relative_to(part).parts)):
                     h.update(str(f.relative_to(part)).encode())
                     h.update(_file_digest(f))
             else:
@@ -118,9 +143,10 @@ def is_done(job_dir: str | os.PathLike, key: str) -> bool:
     if not marker.exists():
         return False
     try:
-        return read_json(marker).get("key") == key
-    except (json.JSONDecodeError, OSError):
+        info = read_json(marker)
+    except (ValueError, OSError):  # a torn or garbage done.json: not done
         return False
+    return isinstance(info, dict) and info.get("key") == key
 
 
 def mark_done(job_dir: str | os.PathLike, key: str, **info: Any) -> None:
@@ -162,7 +188,13 @@ class Project:
 
     def manifest(self) -> dict:
         if self.manifest_path.exists():
-            return read_json(self.manifest_path)
+            try:
+                data = read_json(self.manifest_path)
+            except ValueError as exc:
+                data = None
+                print(f"warning: {exc}; it is rewritten from this run on", file=sys.stderr)
+            if isinstance(data, dict) and isinstance(data.get("stages", {}), dict):
+                return data
         return {"stages": {}}
 
     def record_stage(self, stage: str, **info: Any) -> None:
@@ -184,3 +216,181 @@ class Project:
         if not self.mesh_path.exists():
             raise UserError(f"{self.root}: no character yet (run `t2bs character` or `t2bs render MESH -o {self.root}`)")
         return load_mesh(self.mesh_path)
+
+
+# ------------------------------------------------------------------ safety of a shared project folder
+
+
+def invalidate(job_dir: str | os.PathLike) -> None:
+    """Remove ``job_dir/done.json`` before a job rewrites the folder: a run killed half-way must
+    not leave the old marker beside new, half-written files (the next run would call it done)."""
+    (Path(job_dir) / "done.json").unlink(missing_ok=True)
+
+
+STAGING_PREFIX = ".t2bs-staging-"
+
+
+class OutputSet:
+    """A command's outputs written as one set: files go into ``folder`` (an empty staging folder
+    inside ``final``) and ``commit()`` moves them into ``final`` together.
+
+    Nothing in ``final`` changes before the commit, so a refusal or crash half-way (a NaN input, a
+    full disk, Ctrl-C, kill -9) leaves the previous outputs whole. The commit removes ``marker``
+    (the file that says the set is complete: done.json, report.json) from ``final`` first, renames
+    every staged entry into place and the marker last, so a reader never takes a mixed set for a
+    finished one. ``exclusive``: ``final`` holds only this set (a grid folder), so entries the new
+    set does not write (masks of an earlier grid) are removed at the commit; otherwise (a user's
+    -o folder) they are left alone. A set that never commits is removed when the object goes (an
+    exception on the way), and staging folders of killed runs when the next set opens there (the
+    project lock keeps runs apart)."""
+
+    def __init__(self, final: str | os.PathLike, marker: str, exclusive: bool = False):
+        import shutil
+        import uuid
+        import weakref
+
+        self.final, self.marker, self.exclusive = Path(final), marker, exclusive
+        self.final.mkdir(parents=True, exist_ok=True)
+        for stale in self.final.glob(STAGING_PREFIX + "*"):
+            shutil.rmtree(stale, ignore_errors=True)
+        self.folder = self.final / f"{STAGING_PREFIX}{uuid.uuid4().hex[:8]}"
+        self.folder.mkdir()
+        self._cleanup = weakref.finalize(self, shutil.rmtree, str(self.folder), True)
+
+    def commit(self) -> Path:
+        import shutil
+
+        (self.final / self.marker).unlink(missing_ok=True)
+        if self.exclusive:
+            new = {p.name for p in self.folder.iterdir()}
+            for old in self.final.iterdir():
+                if old != self.folder and old.name not in new:
+                    shutil.rmtree(old) if old.is_dir() and not old.is_symlink() else old.unlink()
+        for entry in sorted(self.folder.iterdir(), key=lambda p: p.name == self.marker):  # marker last
+            target = self.final / entry.name
+            if entry.is_dir() and target.is_dir():
+                shutil.rmtree(target)
+            os.replace(entry, target)
+        self.folder.rmdir()
+        return self.final
+
+    def discard(self) -> None:
+        self._cleanup()  # rmtree once (a no-op after commit removed the folder)
+
+
+@contextlib.contextmanager
+def output_set(final: str | os.PathLike, marker: str, exclusive: bool = False) -> Iterator[Path]:
+    """``OutputSet`` as a block: yields the staging folder, commits on success, discards on failure."""
+    staged = OutputSet(final, marker, exclusive)
+    try:
+        yield staged.folder
+        staged.commit()
+    finally:
+        staged.discard()
+
+
+def read_array(path: str | os.PathLike, what: str, ndim: int | None = None, trailing: tuple = (),
+               finite: bool = True) -> np.ndarray:
+    """np.load of a project file, validated before use: UserError (one line, with the path) for a
+    missing, empty, truncated or pickled file, a wrong number of axes / trailing shape, or NaN."""
+    from t2bs.errors import UserError
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: {what} missing")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise UserError(f"{path}: {what} is not a readable .npy file ({type(exc).__name__}); "
+                        f"delete it and re-run the stage that makes it") from None
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiub":
+        raise UserError(f"{path}: {what} is not a numeric array")
+    if (ndim is not None and arr.ndim != ndim) or (trailing and tuple(arr.shape[arr.ndim - len(trailing):]) != tuple(trailing)) \
+            or arr.size == 0:
+        want = f"{ndim} axes" + (f" ending in {tuple(trailing)}" if trailing else "") if ndim else "a non-empty array"
+        raise UserError(f"{path}: {what} has shape {arr.shape}, expected {want}")
+    if finite and not np.isfinite(arr).all():
+        raise UserError(f"{path}: {what} holds NaN or infinite values ({int((~np.isfinite(arr)).sum())} entries); "
+                        f"re-run the stage that makes it")
+    return arr
+
+
+LOCK_NAME = ".t2bs.lock"
+_held_locks: dict[Path, list] = {}  # folder -> [open lock file, depth]: a command calling another re-enters
+
+
+@contextlib.contextmanager
+def project_lock(root: str | os.PathLike, command: str) -> Iterator[None]:
+    """Hold an exclusive lock on the project folder while a command writes it.
+
+    A second t2bs run on the same project (in another terminal, a script) gets one UserError line
+    naming the first instead of deleting its staging folders or mixing outputs. The lock is an
+    flock on DIR/.t2bs.lock, released by the kernel when the holder dies (kill -9 included), so a
+    crash never leaves the project locked. Re-entrant within a process (``t2bs create`` runs the
+    stage commands). A folder created here and left empty by a failed command is removed again."""
+    import fcntl
+
+    from t2bs.errors import UserError
+
+    root = Path(root).absolute()
+    if root in _held_locks:
+        _held_locks[root][1] += 1
+        try:
+            yield
+        finally:
+            _held_locks[root][1] -= 1
+        return
+    if root.exists() and not root.is_dir():
+        raise UserError(f"{root}: is a file, expected a project folder")
+    created = not root.exists()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        fh = open(root / LOCK_NAME, "a+")
+    except OSError as exc:
+        raise UserError(f"{root}: cannot write to the project folder ({exc.strerror or exc}); "
+                        f"check its permissions, or copy it somewhere writable") from None
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        holder = fh.read().strip() or "another t2bs process"
+        fh.close()
+        raise UserError(f"{root}: another t2bs command is working on this project ({holder}); wait for it to "
+                        f"finish, or stop it, then re-run") from None
+    _held_locks[root] = [fh, 1]
+    ok = False
+    try:
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()}, `t2bs {command}`, since {_now()}\n")
+        fh.flush()
+        yield
+        ok = True
+    finally:
+        del _held_locks[root]
+        fcntl.flock(fh, fcntl.LOCK_UN)
+        fh.close()
+        if created and not ok and [p.name for p in root.iterdir()] == [LOCK_NAME]:
+            (root / LOCK_NAME).unlink(missing_ok=True)
+            root.rmdir()
+
+
+def locked(param: str, command: str):
+    """Decorator for a CLI command: hold ``project_lock`` on the folder its argument ``param`` names."""
+    import functools
+    import inspect
+
+    def wrap(fn):
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def run(*args, **kwargs):
+            folder = sig.bind_partial(*args, **kwargs).arguments.get(param)
+            if folder is None:
+                folder = sig.parameters[param].default
+            with project_lock(folder, command):
+                return fn(*args, **kwargs)
+
+        return run
+
+    return wrap

@@ -12,6 +12,7 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
+from t2bs.project import locked, read_array
 
 SOURCES = ("auto", "vcdgs", "gt")
 
@@ -31,10 +32,7 @@ def _grid_gt(folder: Path) -> tuple[np.ndarray | None, dict]:
     path = folder / "gt_vertices.npy"
     if not path.exists():
         return None, {}
-    try:
-        return np.load(path).astype(np.float32), {}
-    except (ValueError, OSError) as exc:
-        raise UserError(f"{path}: unreadable ({exc})") from None
+    return read_array(path, "ground-truth vertices", ndim=3, trailing=(3,)).astype(np.float32), {}
 
 
 def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[str, str], list[Path], str]:
@@ -56,10 +54,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
         if not recon:
             raise UserError(f"{root}: no finished reconstructions in recon/ (run `t2bs reconstruct {root}` or use --source gt)")
         for p in recon:
-            try:
-                captures[p.parent.name] = np.load(p).astype(np.float32)
-            except (ValueError, OSError) as exc:
-                raise UserError(f"{p}: unreadable ({exc})") from None
+            captures[p.parent.name] = read_array(p, "reconstructed vertices", ndim=3, trailing=(3,)).astype(np.float32)
             files.append(p)
             meta = root / "videos" / p.parent.name / "grid.json"
             if meta.exists():
@@ -82,6 +77,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
 # ------------------------------------------------------------------------ stage command
 
 
+@locked("project_dir", "blendshapes")  # one run at a time per project (issue 39)
 def blendshapes_command(
     project_dir: Path = typer.Argument(..., help="Project folder (character/mesh.glb + recon/ or videos/)."),
     components: int = typer.Option(100, "--components", "-k", help="Most shapes to keep (also capped by the data's rank)."),
@@ -98,11 +94,11 @@ def blendshapes_command(
     from t2bs.blendshapes.model import VISIBLE_FRACTION, build_model, save_model
     from t2bs.blendshapes.semantic import semantic_shapes
     from t2bs.geometry.rigid import remove_motion
-    from t2bs.project import Project, content_key, is_done, mark_done, write_json
+    from t2bs.project import OutputSet, Project, content_key, is_done, mark_done, write_json
 
     project = Project(project_dir)
-    if not project.root.is_dir():
-        raise UserError(f"{project_dir}: no such project folder")
+    if components < 1 or not (np.isfinite(fps) and fps > 0):
+        raise UserError(f"--components must be >= 1 and --fps a positive number (got {components}, {fps})")
     character = project.load_character()
     captures, expressions, files, used = load_captures(project.root, source)
     config = {"components": components, "source": used, "semantic": semantic, "animation": animation, "usd": usd, "fps": fps,
@@ -124,8 +120,10 @@ def blendshapes_command(
     if animation is not None and animation not in captures:
         raise UserError(f"--animation {animation!r}: no such capture; have {', '.join(sorted(captures))}")
     replay = animation or max(captures, key=lambda v: float(np.abs(captures[v] - character.vertices).max()))
+    staged = OutputSet(out, marker="done.json")  # the files below land in `out` together at commit()
+    out = staged.folder
     save_model(model, out / "model.npz")
-    shapes = _arkit_shapes(project, model, character) if arkit else None
+    shapes = _arkit_shapes(project, model, character, out) if arkit else None
     export_glb(model, character, out / "model.glb", capture=replay, fps=fps, arkit=shapes)
     if usd:
         try:
@@ -144,6 +142,7 @@ def blendshapes_command(
     }
     write_json(out / "stats.json", stats)
     mark_done(out, key, components=model.num_components, source=used)
+    out = staged.commit()
     project.record_stage("blendshapes", backend="pca-uncentred", config=config,
                          outputs=["blendshapes/model.npz", "blendshapes/model.glb"], components=model.num_components)
     at = {k: float(cum[k - 1]) for k in (1, 5, 10, 20, 50, 100) if k < len(cum)}
@@ -155,17 +154,18 @@ def blendshapes_command(
     print(f"wrote {out / 'model.npz'} and {out / 'model.glb'} (animation: {replay})")
 
 
-def _arkit_shapes(project, model, character):
-    """ARKit shapes of the freshly saved model -> blendshapes/arkit.json; None (said in one line) when
-    the character has no landmarks to derive them from."""
+def _arkit_shapes(project, model, character, folder: Path):
+    """ARKit shapes of the freshly saved model -> ``folder``/arkit.json (+ arkit_sheet.png): the blendshapes
+    stage's staging folder, so they land with the model; None (said in one line) when the character has no
+    landmarks to derive them from (a previous arkit.json is then removed)."""
     from t2bs.project import write_json
     from t2bs.retarget.arkit import project_arkit_shapes, summary
 
-    path = project.path("blendshapes", "arkit.json")
+    path = folder / "arkit.json"
     try:
         shapes = project_arkit_shapes(project.root, model, character)
     except UserError as exc:
-        path.unlink(missing_ok=True)
+        project.path("blendshapes", "arkit.json").unlink(missing_ok=True)
         print(f"blendshapes: no ARKit shapes ({exc})", file=sys.stderr)
         return None
     write_json(path, shapes.to_dict())
@@ -174,7 +174,7 @@ def _arkit_shapes(project, model, character):
         from t2bs.project import write_image
         from t2bs.retarget.arkit import contact_sheet
 
-        write_image(project.path("blendshapes", "arkit_sheet.png"), contact_sheet(model, character, shapes))
+        write_image(folder / "arkit_sheet.png", contact_sheet(model, character, shapes))
     return shapes
 
 

@@ -306,6 +306,15 @@ def load_model(path: str | os.PathLike) -> BlendshapeModel:
     basis, neutral = data["basis"], data["neutral"]
     if basis.ndim != 3 or basis.shape[1:] != neutral.shape:
         raise UserError(f"{path}: basis {basis.shape} does not match neutral {neutral.shape}")
+    # Read back from a project folder: refuse what would poison every output made from it.
+    if neutral.ndim != 2 or neutral.shape[1] != 3 or len(data["names"]) != len(basis) \
+            or len(data["singular_values"]) != len(basis):
+        raise UserError(f"{path}: blendshape model arrays disagree (neutral {neutral.shape}, basis {basis.shape}, "
+                        f"{len(data['names'])} names, {len(data['singular_values'])} singular values)")
+    for key in ("neutral", "basis", "singular_values"):
+        if data[key].dtype.kind not in "fiu" or not np.isfinite(data[key]).all():
+            raise UserError(f"{path}: blendshape model {key!r} holds NaN, infinite or non-numeric values; "
+                            f"rebuild it with `t2bs blendshapes DIR`")
     ids = [str(s) for s in data.get("capture_ids", np.array([], dtype=str))]
     ev = data.get("explained_variance")
     sem_w = data.get("semantic_weights")

@@ -6,6 +6,7 @@ Every backend returns a ``GenerationResult`` whose mesh is validated and in the 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import subprocess
@@ -32,7 +33,8 @@ def default_checkpoint_dir() -> Path:
 
 def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint: Path | None = None,
              command: str | None = None, mesh_path: Path | None = None, steps: int = 64,
-             device: str | None = None, facing: str = "auto", grid_size: int = 128) -> GenerationResult:
+             device: str | None = None, facing: str = "auto", grid_size: int = 128,
+             command_timeout: float | None = None) -> GenerationResult:
     """Run one backend; UserError for unknown backends or missing arguments."""
     if backend not in BACKENDS:
         raise UserError(f"unknown --backend {backend!r}; use one of {', '.join(BACKENDS)}")
@@ -46,7 +48,8 @@ def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint
     if backend == "command":
         if not command:
             raise UserError("--backend command needs --command, e.g. --command \"python run_trellis.py --prompt {prompt} --out {out}\"")
-        return generate_with_command(prompt, command, seed, facing=facing)
+        return generate_with_command(prompt, command, seed, facing=facing,
+                                     timeout=COMMAND_TIMEOUT_S if command_timeout is None else command_timeout)
     if mesh_path is None:
         raise UserError("--backend file needs --mesh PATH")
     return generate_from_file(mesh_path, prompt, facing=facing)
@@ -124,26 +127,111 @@ def shap_e_to_mesh(decoded) -> Mesh:
 # ---------------------------------------------------------------- external command
 
 
-def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: float | None = None,
+COMMAND_TIMEOUT_S = 3600.0  # default limit of a --command run (a 3D generator on a GPU takes minutes)
+_PLACEHOLDERS = ("prompt", "out", "seed")
+_SHELLS = {"sh", "bash", "dash", "zsh", "ksh", "fish", "csh", "tcsh", "cmd", "cmd.exe", "powershell", "pwsh"}
+_INTERPRETERS = ("python", "perl", "ruby", "node", "php", "lua", "rscript")  # their -c / -e run inline code
+
+
+def command_argv(template: str, prompt: str, out: Path, seed: int) -> list[str]:
+    """The argument list of a --command template: parsed once with shlex, placeholders filled per argument.
+
+    No shell ever sees the prompt: ``{prompt}`` (bare, ``'{prompt}'`` or ``"{prompt}"``) becomes
+    part of one argv entry, so ``$(...)``, backticks and ``;`` in a prompt stay text. A template that
+    runs a shell itself (``sh -c '... {prompt} ...'``) is refused: the script would re-parse the
+    prompt; such a script reads ``"$T2BS_PROMPT"`` (set for every command) instead.
+    """
+    import string
+
+    try:
+        args = shlex.split(template)
+    except ValueError as exc:
+        raise UserError(f"--command template cannot be parsed ({exc}): {template}") from None
+    if not args:
+        raise UserError("--command template is empty")
+    values = {"prompt": prompt, "out": str(out), "seed": str(int(seed))}
+    argv = []
+    for i, arg in enumerate(args):
+        try:
+            fields = [f for f in string.Formatter().parse(arg) if f[1] is not None]
+        except ValueError as exc:
+            raise UserError(f"--command template: malformed placeholder in {arg!r} ({exc}); use {{prompt}} {{out}} {{seed}}") from None
+        for _, name, spec, conv in fields:
+            if name not in _PLACEHOLDERS or spec or conv:
+                bad = "{" + name + (f"!{conv}" if conv else "") + (f":{spec}" if spec else "") + "}"
+                raise UserError(f"--command template: unknown placeholder {bad}; use {{prompt}} {{out}} {{seed}} as they are")
+        if i == 0 and fields:
+            raise UserError("--command template: the program name cannot be a placeholder")
+        if any(name == "prompt" for _, name, _, _ in fields) and _runs_shell_script(args, i):
+            raise UserError("--command template passes {prompt} into a shell script or inline code (-c/-e), which would "
+                            "run what the prompt contains; pass it as its own argument, or read \"$T2BS_PROMPT\" "
+                            "in the script")
+        argv.append(arg.format(**values))  # also turns {{ }} into literal braces
+    return argv
+
+
+def _runs_shell_script(args: list[str], i: int) -> bool:
+    """True when argument ``i`` is code for an interpreter (``sh -c SCRIPT``, ``bash -lc``, ``python -c``,
+    ``perl -e``, ``node --eval``, ``cmd /c``): there the prompt would be parsed as code, not passed as text."""
+    for j in range(i):
+        name = Path(args[j]).name.lower()
+        if name in _SHELLS or name.startswith(_INTERPRETERS):
+            if name.startswith(("cmd", "pwsh", "powershell")):
+                return True
+            for k in range(j + 1, i):  # the interpreter's own options, up to its script or code
+                flag = args[k]
+                if not flag.startswith("-"):
+                    return False  # a script file: the prompt is one of its arguments
+                if flag in ("--eval", "--print", "--command") or (not flag.startswith("--") and set(flag[1:]) & set("cep")):
+                    return i == k + 1  # the argument after -c / -e is code
+            return False
+    return False
+
+
+def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run ``argv`` without a shell; past ``timeout`` seconds its whole process group is killed (UserError)."""
+    import signal
+
+    try:
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                start_new_session=True)  # own group: a timeout kills what it started too
+    except (FileNotFoundError, PermissionError, OSError) as exc:
+        raise UserError(f"--command cannot start {argv[0]!r}: {exc.strerror or exc}") from None
+    try:
+        stdout, stderr = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise UserError(f"--command did not finish within {timeout:g} s (raise it with --command-timeout): "
+                        f"{shlex.join(argv)}") from None
+    except BaseException:  # Ctrl-C: do not leave the generator running
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        raise
+    return subprocess.CompletedProcess(argv, proc.returncode, stdout, stderr)
+
+
+def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: float | None = COMMAND_TIMEOUT_S,
                           facing: str = "auto") -> GenerationResult:
     """Run a user command template (placeholders {prompt} {out} {seed}) that writes a mesh into {out}.
 
     {out} is an empty folder; the command may write any mesh file there (glb/gltf/vrm/obj/ply).
+    The template runs without a shell (``command_argv``); the values are also in the environment
+    as T2BS_PROMPT, T2BS_OUT and T2BS_SEED. ``timeout``: seconds (None or 0 = no limit).
     """
     if "{out}" not in template:
         raise UserError("--command must contain {out} (the folder the command writes its mesh into)")
+    if timeout is not None and not (timeout >= 0 and np.isfinite(timeout)):
+        raise UserError(f"--command-timeout must be a number of seconds >= 0, got {timeout}")
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="t2bs-command-") as tmp:
         out = Path(tmp) / "out"
         out.mkdir()
-        try:
-            line = template.format(prompt=shlex.quote(prompt), out=shlex.quote(str(out)), seed=int(seed))
-        except (KeyError, IndexError, ValueError) as exc:
-            raise UserError(f"--command template: unknown or malformed placeholder ({exc}); use {{prompt}} {{out}} {{seed}}") from None
-        try:
-            proc = subprocess.run(line, shell=True, capture_output=True, text=True, timeout=timeout)
-        except subprocess.TimeoutExpired:
-            raise UserError(f"--command did not finish within {timeout} s: {line}") from None
+        argv = command_argv(template, prompt, out, seed)
+        env = {**os.environ, "T2BS_PROMPT": prompt, "T2BS_OUT": str(out), "T2BS_SEED": str(int(seed))}
+        proc = run_argv(argv, timeout or None, env)
+        line = shlex.join(argv)
         if proc.returncode != 0:
             tail = (proc.stderr.strip() or proc.stdout.strip() or "no output").splitlines()[-1]
             raise UserError(f"--command failed with exit code {proc.returncode}: {tail}")

@@ -9,6 +9,7 @@ import numpy as np
 import typer
 
 from t2bs.errors import UserError
+from t2bs.project import locked
 
 # The paper's 10 characters (Tables in the appendix) and 6 more archetypes.
 GALLERY_PROMPTS = [
@@ -31,13 +32,15 @@ GALLERY_PROMPTS = [
 ]
 
 
+@locked("out", "character")  # one run at a time per project (issue 39)
 def character_command(
     prompt: str = typer.Argument(..., help="Text describing the character, e.g. \"a cartoon fox with big ears\"."),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder to create or update."),
     backend: str = typer.Option("procedural", help="procedural (offline), diffusers (Shap-E), command, file."),
     seed: int = typer.Option(0, help="Random seed: same prompt + seed -> same character."),
     checkpoint: Path = typer.Option(None, help="diffusers: local Shap-E folder (default ~/.cache/t2bs/checkpoints/shap-e)."),
-    command: str = typer.Option(None, help="command: template with {prompt} {out} {seed}; it writes a mesh into {out}."),
+    command: str = typer.Option(None, help="command: template with {prompt} {out} {seed}; it writes a mesh into {out}. Run without a shell (docs/HOSTILE_INPUTS.md)."),
+    command_timeout: float = typer.Option(3600.0, help="command: seconds before the command is killed (0 = no limit)."),
     mesh: Path = typer.Option(None, help="file: a mesh (.glb .gltf .vrm .obj .ply)."),
     steps: int = typer.Option(64, help="diffusers: denoising steps."),
     size: int = typer.Option(512, help="Render size in pixels."),
@@ -50,7 +53,7 @@ def character_command(
     if size < 16:
         raise UserError("--size must be >= 16")
     result = generate(prompt, backend=backend, seed=seed, checkpoint=checkpoint, command=command, mesh_path=mesh,
-                      steps=steps)
+                      steps=steps, command_timeout=command_timeout)
     for line in result.notices:
         print(f"notice: {line}")
     project = Project(out)

@@ -30,7 +30,8 @@ GLTF_SUFFIXES = {".glb", ".gltf", ".vrm"}
 TRIMESH_SUFFIXES = {".obj", ".ply", ".off", ".stl"}
 
 _COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
-_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+MAX_ACCESSOR_COUNT = 1 << 25  # a count past this cannot be a real buffer; refuse before allocating it
 
 
 def load_mesh(path: str | os.PathLike) -> Mesh:
@@ -43,12 +44,13 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     if path.stat().st_size == 0:
         raise UserError(f"{path}: file is empty")
     suffix = path.suffix.lower()
-    if suffix in GLTF_SUFFIXES:
-        mesh = _load_gltf(path)
-    elif suffix in TRIMESH_SUFFIXES:
-        mesh = _load_trimesh(path)
-    else:
+    if suffix not in GLTF_SUFFIXES | TRIMESH_SUFFIXES:
         raise UserError(f"{path}: unsupported mesh format {suffix!r} (use .glb .gltf .vrm .obj .ply)")
+    try:
+        mesh = _load_gltf(path) if suffix in GLTF_SUFFIXES else _load_trimesh(path)
+    except MemoryError:
+        raise UserError(f"{path}: mesh too large to load in memory") from None
+    check_mesh_size(mesh.num_vertices, len(mesh.faces), str(path))
     return mesh.validate(str(path))
 
 
@@ -64,28 +66,83 @@ def linear_to_srgb(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
+# A character mesh past these sizes makes every stage slow and memory-bound (measured: a
+# 2-million-vertex mesh took 77 s and 1.6 GB to render and grew past 10 GB in reconstruct), far
+# beyond the detail a 512 px video shows. Raise them with T2BS_MAX_VERTICES / T2BS_MAX_FACES.
+MAX_VERTICES = 300_000
+MAX_FACES = 600_000
+
+
+def check_mesh_size(vertices: int, faces: int, source: str) -> None:
+    """UserError naming the counts and how to decimate when a mesh is over the size limit."""
+    limits = {}
+    for name, default in (("VERTICES", MAX_VERTICES), ("FACES", MAX_FACES)):
+        raw = os.environ.get(f"T2BS_MAX_{name}", "")
+        try:
+            limits[name] = int(raw) if raw else default
+        except ValueError:
+            raise UserError(f"T2BS_MAX_{name}={raw!r} is not a whole number") from None
+    if vertices > limits["VERTICES"] or faces > limits["FACES"]:
+        raise UserError(f"{source}: mesh has {vertices:,} vertices and {faces:,} faces, over the limit of "
+                        f"{limits['VERTICES']:,} vertices / {limits['FACES']:,} faces; decimate it first (Blender: "
+                        f"Decimate modifier; Python: `pip install fast-simplification` then trimesh's "
+                        f"mesh.simplify_quadric_decimation(face_count={limits['FACES'] // 2})) or raise "
+                        f"T2BS_MAX_VERTICES / T2BS_MAX_FACES")
+
+
 # ---------------------------------------------------------------------------------- glTF read
 
 
 def _load_gltf(path: Path) -> Mesh:
+    import warnings
+
+    if path.suffix.lower() in (".glb", ".vrm"):
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        if magic != b"glTF":
+            raise UserError(f"{path}: not a readable glTF/GLB file (it does not start with the GLB header)")
     try:
         # pygltflib picks binary vs JSON by the suffix; a .vrm is a binary glTF under another name.
         with open(path, "rb") as f:
             binary = f.read(4) == b"glTF"
-        gltf = pygltflib.GLTF2().load_binary(str(path)) if binary else pygltflib.GLTF2().load_json(str(path))
+        with warnings.catch_warnings():  # pygltflib warns in several lines about odd files; the error says it in one
+            warnings.simplefilter("ignore")
+            gltf = pygltflib.GLTF2().load_binary(str(path)) if binary else pygltflib.GLTF2().load_json(str(path))
     except Exception as exc:  # pygltflib raises many types on garbage input
         raise UserError(f"{path}: not a readable glTF/GLB file ({type(exc).__name__})") from None
     if gltf is None or not gltf.meshes:
         raise UserError(f"{path}: glTF file contains no meshes")
+    try:
+        return _parse_gltf(gltf, path)
+    except _MalformedGltf as exc:
+        raise UserError(f"{path}: malformed glTF: {exc}") from None
+    except (IndexError, KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        # The file is untrusted input: any index or field the checks below do not name still ends
+        # as one line (exc names what numpy/pygltflib tripped over), never a traceback.
+        raise UserError(f"{path}: malformed glTF ({type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else 'bad field'})") from None
+
+
+class _MalformedGltf(Exception):
+    """A glTF structure that breaks the spec (message without the path; _load_gltf adds it)."""
+
+
+def _index(items, i, what: str):
+    """``items[i]`` for a glTF index ``i`` (None-safe; negative or past the end = malformed)."""
+    if not isinstance(i, int) or items is None or not 0 <= i < len(items):
+        raise _MalformedGltf(f"{what} index {i!r} out of range (file has {0 if items is None else len(items)})")
+    return items[i]
+
+
+def _parse_gltf(gltf: pygltflib.GLTF2, path: Path) -> Mesh:
     buffers = [_buffer_bytes(gltf, b, path) for b in gltf.buffers]
     parts: list[tuple[str, Mesh]] = []
-    scene = gltf.scenes[gltf.scene or 0] if gltf.scenes else None
-    roots = scene.nodes if scene is not None else range(len(gltf.nodes))
+    scene = _index(gltf.scenes, gltf.scene or 0, "scene") if gltf.scenes else None
+    roots = (scene.nodes or []) if scene is not None else range(len(gltf.nodes))
     for node_index, world, node_name in _walk_nodes(gltf, roots):
         node = gltf.nodes[node_index]
         if node.mesh is None:
             continue
-        gmesh = gltf.meshes[node.mesh]
+        gmesh = _index(gltf.meshes, node.mesh, "mesh")
         names = (gmesh.extras or {}).get("targetNames", []) if isinstance(gmesh.extras, dict) else []
         for p_index, prim in enumerate(gmesh.primitives):
             if prim.mode not in (None, 4):  # only triangle lists are surfaces
@@ -107,14 +164,23 @@ def _load_gltf(path: Path) -> Mesh:
     return merge_meshes(parts)
 
 
-def _walk_nodes(gltf: pygltflib.GLTF2, roots, parent=np.eye(4), parent_name=None):
-    """Yield (node index, world matrix, name of the node or of its nearest named ancestor)."""
+def _walk_nodes(gltf: pygltflib.GLTF2, roots, parent=np.eye(4), parent_name=None, path=()):
+    """Yield (node index, world matrix, name of the node or of its nearest named ancestor).
+
+    ``path``: the node indices above, so a node that is its own ancestor (a cycle the spec forbids)
+    is an error instead of endless recursion."""
     for i in roots:
-        node = gltf.nodes[i]
+        node = _index(gltf.nodes, i, "node")
+        if i in path:
+            raise _MalformedGltf(f"node {i} is its own ancestor (a cycle in the node hierarchy)")
+        if len(path) > 256:
+            raise _MalformedGltf("node hierarchy deeper than 256 levels")
         world = parent @ _node_matrix(node)
+        if not np.isfinite(world).all():
+            raise _MalformedGltf(f"node {i} has a non-finite transform")
         name = node.name or parent_name
         yield i, world, name
-        yield from _walk_nodes(gltf, node.children or [], world, name)
+        yield from _walk_nodes(gltf, node.children or [], world, name, path + (i,))
 
 
 def _node_matrix(node: pygltflib.Node) -> np.ndarray:
@@ -143,24 +209,63 @@ def _buffer_bytes(gltf: pygltflib.GLTF2, buffer: pygltflib.Buffer, path: Path) -
             raise UserError(f"{path}: GLB has no binary chunk")
         return blob
     if buffer.uri.startswith("data:"):
-        return base64.b64decode(buffer.uri.split(",", 1)[1])
-    external = path.parent / buffer.uri
-    if not external.exists():
-        raise UserError(f"{path}: external buffer {buffer.uri!r} not found next to it")
-    return external.read_bytes()
+        return _data_uri(buffer.uri, path)
+    return _read_beside(path, buffer.uri, "external buffer")
+
+
+def _data_uri(uri: str, path: Path) -> bytes:
+    try:
+        return base64.b64decode(uri.split(",", 1)[1], validate=False)
+    except (IndexError, ValueError):
+        raise UserError(f"{path}: malformed data: uri in a buffer or image") from None
+
+
+def _read_beside(path: Path, uri: str, what: str) -> bytes:
+    """The file a relative glTF uri names, only inside the glTF file's own folder.
+
+    A file someone sends you must not make t2bs read elsewhere on disk (``../../etc/passwd``, an
+    absolute path, a link pointing out): the resolved path must stay under the folder."""
+    from urllib.parse import unquote, urlparse
+
+    if urlparse(uri).scheme not in ("", "file") or uri.startswith("file:"):
+        raise UserError(f"{path}: {what} uri {uri!r} is not a relative file name (only files beside the glTF are read)")
+    folder = path.parent.resolve()
+    target = (folder / unquote(uri)).resolve()
+    if not target.is_relative_to(folder):
+        raise UserError(f"{path}: {what} uri {uri!r} points outside the glTF file's folder; refused")
+    if target.is_dir():
+        raise UserError(f"{path}: {what} uri {uri!r} names a folder, not a file")
+    if not target.is_file():
+        raise UserError(f"{path}: {what} {uri!r} not found next to it")
+    try:
+        return target.read_bytes()
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read {what} {target}: {exc.strerror or exc}") from None
 
 
 def _read_accessor(gltf: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
-    acc = gltf.accessors[index]
+    acc = _index(gltf.accessors, index, "accessor")
+    if acc.componentType not in _COMPONENT_DTYPES:
+        raise _MalformedGltf(f"accessor {index} has componentType {acc.componentType!r} (valid: {sorted(_COMPONENT_DTYPES)})")
+    if acc.type not in _TYPE_SIZES:
+        raise _MalformedGltf(f"accessor {index} has type {acc.type!r} (valid: {', '.join(_TYPE_SIZES)})")
+    if not isinstance(acc.count, int) or acc.count < 0 or acc.count > MAX_ACCESSOR_COUNT:
+        raise _MalformedGltf(f"accessor {index} has count {acc.count!r}")
     dtype = _COMPONENT_DTYPES[acc.componentType]
     width = _TYPE_SIZES[acc.type]
-    out = np.zeros((acc.count, width), dtype=dtype)
-    if acc.bufferView is not None:
-        view = gltf.bufferViews[acc.bufferView]
-        data = buffers[view.buffer]
+    if acc.bufferView is None:
+        out = np.zeros((acc.count, width), dtype=dtype)  # all zeros unless sparse (spec 3.6.2.3)
+    else:
+        view = _index(gltf.bufferViews, acc.bufferView, "bufferView")
+        data = _index(buffers, view.buffer, "buffer")
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
         item = np.dtype(dtype).itemsize * width
         stride = view.byteStride or item
+        end = start + (stride * (acc.count - 1) + item if acc.count else 0)
+        view_end = (view.byteOffset or 0) + (view.byteLength or 0)
+        if start < 0 or stride < item or end > min(len(data), view_end):
+            raise _MalformedGltf(f"accessor {index} reads bytes {start}..{end} but its buffer view / buffer ends at "
+                                 f"{min(len(data), view_end)} (truncated buffer?)")
         if stride == item:
             out = np.frombuffer(data, dtype=dtype, count=acc.count * width, offset=start).reshape(acc.count, width)
         else:
@@ -191,8 +296,14 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
         raise UserError(f"{path}: a primitive has no POSITION attribute")
     pos = _read_accessor(gltf, buffers, attrs.POSITION).astype(np.float64)
     if prim.indices is not None:
-        faces = _read_accessor(gltf, buffers, prim.indices).reshape(-1, 3).astype(np.int64)
+        idx = _read_accessor(gltf, buffers, prim.indices)
+        if idx.shape[1] != 1 or not np.issubdtype(idx.dtype, np.integer) or len(idx) % 3:
+            raise _MalformedGltf(f"triangle indices must be an integer SCALAR accessor with a multiple of 3 entries, "
+                                 f"got {len(idx)} x {idx.shape[1]} {idx.dtype}")
+        faces = idx.reshape(-1, 3).astype(np.int64)
     else:
+        if len(pos) % 3:
+            raise _MalformedGltf(f"a non-indexed triangle list has {len(pos)} vertices, not a multiple of 3")
         faces = np.arange(len(pos)).reshape(-1, 3)
     linear = world[:3, :3]
     vertices = pos @ linear.T + world[:3, 3]
@@ -206,7 +317,7 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
     colors = uv = texture = None
     factor = np.ones(3)
     if prim.material is not None:
-        pbr = gltf.materials[prim.material].pbrMetallicRoughness
+        pbr = _index(gltf.materials, prim.material, "material").pbrMetallicRoughness
         if pbr is not None:
             factor = np.asarray((pbr.baseColorFactor or [1, 1, 1, 1])[:3], dtype=np.float64)
             tex_info = pbr.baseColorTexture
@@ -224,14 +335,14 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
 
 
 def _read_texture(gltf, buffers, texture_index: int, path: Path) -> np.ndarray:
-    image = gltf.images[gltf.textures[texture_index].source]
+    image = _index(gltf.images, _index(gltf.textures, texture_index, "texture").source, "image")
     if image.bufferView is not None:
-        view = gltf.bufferViews[image.bufferView]
-        data = buffers[view.buffer][(view.byteOffset or 0) : (view.byteOffset or 0) + view.byteLength]
+        view = _index(gltf.bufferViews, image.bufferView, "bufferView")
+        data = _index(buffers, view.buffer, "buffer")[(view.byteOffset or 0) : (view.byteOffset or 0) + view.byteLength]
     elif image.uri and image.uri.startswith("data:"):
-        data = base64.b64decode(image.uri.split(",", 1)[1])
+        data = _data_uri(image.uri, path)
     elif image.uri:
-        data = (path.parent / image.uri).read_bytes()
+        data = _read_beside(path, image.uri, "texture image")
     else:
         raise UserError(f"{path}: texture image has no data")
     try:

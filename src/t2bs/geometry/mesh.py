@@ -90,6 +90,8 @@ class Mesh:
             raise UserError(f"{source}: faces index vertices outside 0..{v.shape[0] - 1}")
         if self.bbox_diagonal() <= 0:
             raise UserError(f"{source}: all vertices are at one point")
+        if not (np.linalg.norm(face_area_normals(v, f), axis=1) > 0).any():
+            raise UserError(f"{source}: every face has zero area (nothing to render)")
         for name, d in self.morph_targets.items():
             if d.shape != v.shape or not np.isfinite(d).all():
                 raise UserError(f"{source}: morph target {name!r} has a bad shape or NaN offsets")

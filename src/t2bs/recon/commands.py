@@ -19,6 +19,7 @@ from t2bs.errors import UserError
 from t2bs.distributed import Job, run_jobs
 from t2bs.project import Project, content_key
 from t2bs.recon.config import METHODS, PRESETS, VCDGSConfig, parse_options, preset
+from t2bs.project import locked
 
 
 def list_videos(project: Project, videos: list[str] | None) -> list[Path]:
@@ -111,6 +112,7 @@ def reconstruct_video(project: Project, grid_dir: Path, cfg: VCDGSConfig, progre
     return job.out_dir, bool(run_jobs([job], desc="reconstruct"))
 
 
+@locked("project_dir", "reconstruct")  # one run at a time per project (issue 39)
 def reconstruct_command(
     project_dir: Path = typer.Argument(..., help="Project folder with character/mesh.glb and videos/<id>/ grids."),
     videos: list[str] = typer.Option(None, "--videos", help="Video ids to reconstruct (repeat or comma-separate); default all."),
@@ -148,10 +150,16 @@ def reconstruct_command(
         overrides["hidden_pick"] = hidden_pick
     if face_gaussians >= 0:
         overrides["max_face_gaussians"] = face_gaussians
+    if workers < 1:
+        raise UserError(f"--workers must be >= 1, got {workers}")
     if workers > 1:  # parallel jobs share the cores instead of oversubscribing them
         overrides["threads"] = max(1, (os.cpu_count() or 1) // workers)
     overrides.update(extra)
     cfg = preset(preset_name, **overrides)
+    if cfg.device != "auto":
+        from t2bs.recon.vcdgs import check_device
+
+        check_device(cfg.device)  # before any job starts (a worker would fail each video in turn)
     grids = list_videos(project, videos)
     t0 = time.time()
     jobs = [recon_job(project, g, cfg, preview=not no_preview) for g in grids]

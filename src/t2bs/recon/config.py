@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import math
 import typing
 from dataclasses import asdict, dataclass, field, replace
 
@@ -154,7 +155,33 @@ class VCDGSConfig:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
         if self.hidden_pick_clusters < 1 or self.hidden_pick_views < 1:
             raise UserError("hidden_pick_clusters and hidden_pick_views must be >= 1")
+        self._check_ranges()
         return self
+
+    # Floats that must be > 0 (a zero learning rate or Huber width trains nothing / divides by 0).
+    _POSITIVE = ("static_lr", "lr_deform", "lr_global", "lr_refine", "lr_final_ratio", "huber_delta", "flatness",
+                 "track_delta")
+    _FRACTIONS = ("canonical_fraction", "lr_final_ratio")  # also <= 1
+
+    def _check_ranges(self) -> None:
+        """Every number finite and in range: NaN or a negative count from --set would otherwise train
+        NaN or crash deep inside (issue 39). Counts and weights are >= 0; the seed may be any int."""
+        for name, f in self.__dataclass_fields__.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or name == "seed":
+                continue
+            if isinstance(value, float) and not math.isfinite(value):
+                raise UserError(f"VCDGS option {name}={value}: must be a finite number")
+            if isinstance(value, (int, float)) and value < 0:
+                raise UserError(f"VCDGS option {name}={value}: must be >= 0")
+            if name in self._POSITIVE and value <= 0:
+                raise UserError(f"VCDGS option {name}={value}: must be > 0")
+            if name in self._FRACTIONS and value > 1:
+                raise UserError(f"VCDGS option {name}={value}: must be at most 1")
+        if any(v < 0 for v in self.holdout_views):
+            raise UserError(f"holdout_views {list(self.holdout_views)}: view indices are >= 0")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise UserError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -211,7 +238,8 @@ def _parse_value(name: str, kind, text: str):
             return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
         pass
-    raise UserError(f"VCDGS option {name}={text!r}: not a valid {getattr(kind, '__name__', str(kind))}")
+    shown = text if len(text) <= 40 else text[:40] + f"... ({len(text)} characters)"
+    raise UserError(f"VCDGS option {name}={shown!r}: not a valid {getattr(kind, '__name__', str(kind))}")
 
 
 def parse_options(items: typing.Iterable[str]) -> dict:

@@ -131,10 +131,14 @@ def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
                              for v in range(grid.num_views)])
     cams = [c.resized(*size) for c in grid.cameras]
     hold = {int(v) for v in cfg.holdout_views}
-    if grid.canonical_view in hold:
-        from t2bs.errors import UserError
+    from t2bs.errors import UserError
 
+    if grid.canonical_view in hold:
         raise UserError(f"the canonical view {grid.canonical_view} cannot be held out")
+    if any(not 0 <= v < grid.num_views for v in hold):
+        raise UserError(f"holdout_views {sorted(hold)}: the grid has views 0..{grid.num_views - 1}")
+    if grid.num_frames < 2:
+        raise UserError(f"the grid has {grid.num_frames} frame; VCDGS needs at least 2 (a rest frame and a moving one)")
     train_views = [v for v in range(grid.num_views) if v not in hold]
     shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
     if "shading" not in (grid.meta.get("grid_config") or {}) and cfg.static_shading == "auto":
@@ -215,7 +219,20 @@ def debias_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
 def _device(cfg: VCDGSConfig) -> torch.device:
     if cfg.device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    check_device(cfg.device)
     return torch.device(cfg.device)
+
+
+def check_device(device: str) -> None:
+    """UserError for a CUDA device this machine does not have (instead of torch's deep traceback)."""
+    from t2bs.errors import UserError
+
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {device}: no CUDA GPU is available to torch here (use --device cpu or auto)")
+        index = int(device.partition(":")[2] or 0) if device.partition(":")[2].isdigit() or device == "cuda" else -1
+        if not 0 <= index < torch.cuda.device_count():
+            raise UserError(f"--device {device}: this machine has CUDA devices 0..{torch.cuda.device_count() - 1}")
 
 
 def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) -> dict:
@@ -359,14 +376,9 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
     start = 0
     if checkpoint is not None and checkpoint.exists():
-        ck = torch.load(checkpoint, map_location=dev, weights_only=False)
-        if ck.get("key") == key:
-            model.load_state_dict(ck["model"])
-            for k, o in opts.items():
-                o.load_state_dict(ck["opts"][k])
-            gen.set_state(ck["gen"])
-            history = ck["history"]
-            start = int(ck["step"])
+        resumed = resume_checkpoint(checkpoint, key, model, opts, gen, cfg.iterations, dev)
+        if resumed is not None:
+            history, start = resumed
     bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
                total=cfg.iterations)
     model.train()
@@ -439,6 +451,57 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     model.eval()
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
     return history
+
+
+def resume_checkpoint(path: Path, key: str, model: VCDGSModel, opts: dict, gen: torch.Generator, iterations: int,
+                      dev) -> tuple[dict, int] | None:
+    """Load a training checkpoint into ``model``/``opts``/``gen``; (history, step), or None to start fresh.
+
+    A project folder may come from someone else, so nothing in it is executed: the file is read
+    with ``weights_only=True`` (tensors and plain containers only; a pickled callable is refused
+    by torch's restricted unpickler), and its key is checked before any state is used. A file that
+    does not load, belongs to other inputs or does not fit this model is removed with a warning,
+    and training starts fresh with the model untouched."""
+    import copy
+    import sys
+
+    def discard(why: str) -> None:
+        print(f"warning: {path}: {why}; discarded, training starts fresh", file=sys.stderr, flush=True)
+        path.unlink(missing_ok=True)
+
+    try:
+        ck = torch.load(path, map_location=dev, weights_only=True)
+    except Exception as exc:  # truncated zip, a pickle with code in it, not a torch file: all untrusted input
+        import pickle
+
+        why = ("it holds objects other than tensors and plain values (possibly code), refused unexecuted"
+               if isinstance(exc, pickle.UnpicklingError) else f"it is not a readable checkpoint ({type(exc).__name__})")
+        discard(f"checkpoint does not load: {why}")
+        return None
+    if not isinstance(ck, dict) or ck.get("key") != key:
+        discard("checkpoint belongs to other inputs or settings (its key differs)")
+        return None
+    step, history = ck.get("step"), ck.get("history")
+    if not isinstance(step, int) or not 0 <= step <= iterations or not isinstance(history, dict) \
+            or not isinstance(ck.get("opts"), dict) or set(ck["opts"]) != set(opts):
+        discard("checkpoint is malformed (step, history or optimiser state)")
+        return None
+    saved = (copy.deepcopy(model.state_dict()), {k: copy.deepcopy(o.state_dict()) for k, o in opts.items()}, gen.get_state())
+    try:
+        model.load_state_dict(ck["model"])
+        for k, o in opts.items():
+            o.load_state_dict(ck["opts"][k])
+        gen.set_state(ck["gen"])
+        if any(not torch.isfinite(p).all() for p in model.parameters()):
+            raise ValueError("non-finite parameters")
+    except Exception as exc:  # shapes of another model, a wrong generator state: restore what was there
+        model.load_state_dict(saved[0])
+        for k, o in opts.items():
+            o.load_state_dict(saved[1][k])
+        gen.set_state(saved[2])
+        discard(f"checkpoint does not fit this model ({type(exc).__name__})")
+        return None
+    return history, step
 
 
 @torch.no_grad()

@@ -13,7 +13,8 @@ import typer
 from tqdm import tqdm
 
 from t2bs.errors import UserError
-from t2bs.project import Project, read_json, write_image, write_json
+from t2bs.project import OutputSet, Project, read_json, write_image, write_json
+from t2bs.project import locked
 
 
 def _load_character(project_dir: Path):
@@ -63,6 +64,7 @@ def compute_landmarks(project_dir: Path, backend: str = "auto", override: Option
     return lm
 
 
+@locked("project_dir", "landmarks")  # one run at a time per project (issue 39)
 def landmarks_command(
     project_dir: Path = typer.Argument(..., help="project folder (with character/mesh.glb)"),
     show: bool = typer.Option(False, "--show", help="also write landmarks/overlay.png"),
@@ -76,6 +78,24 @@ def landmarks_command(
         print(f"overlay -> {Path(project_dir) / 'landmarks' / 'overlay.png'}")
 
 
+def _read_landmarks(path: Path, num_vertices: int):
+    """landmarks.json validated; None (with a notice, so they are detected again) when missing or broken."""
+    from t2bs.retarget.landmarks import Landmarks
+
+    if not path.exists():
+        print("no landmarks/landmarks.json yet: detecting them (t2bs landmarks DIR --show to check)")
+        return None
+    try:
+        lm = Landmarks.from_dict(read_json(path), num_vertices)
+        if not (np.isfinite(lm.points2d).all() and np.isfinite(lm.positions).all()):
+            raise ValueError("NaN coordinates")
+        return lm
+    except (UserError, ValueError, KeyError, TypeError, AttributeError, OSError) as exc:
+        print(f"warning: {path} is unreadable or does not fit this character ({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__}); "
+              "detecting the landmarks again")
+        return None
+
+
 def _side_by_side(driver: np.ndarray, char: np.ndarray) -> np.ndarray:
     """Driver frame scaled to the character frame's height, then both side by side (even sizes)."""
     from PIL import Image
@@ -86,6 +106,7 @@ def _side_by_side(driver: np.ndarray, char: np.ndarray) -> np.ndarray:
     return np.concatenate([d, char], axis=1)
 
 
+@locked("project_dir", "retarget")  # one run at a time per project (issue 39)
 def retarget_command(
     project_dir: Path = typer.Argument(..., help="project folder (character/mesh.glb, blendshapes/model.npz)"),
     driver: Path = typer.Option(..., "--driver", help="human face video file, folder of images, or Live Link Face .csv"),
@@ -104,27 +125,34 @@ def retarget_command(
     from t2bs.geometry.io import save_mesh
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.retarget.face_tracking import TrackConfig, read_driver, track_face
-    from t2bs.retarget.landmarks import Landmarks
     from t2bs.retarget.solve import RetargetSolver
     from t2bs.retarget.transfer import transfer_motion
 
     t0 = time.perf_counter()
+    if size < 16 or size > 4096:
+        raise UserError(f"--size must be 16..4096 pixels, got {size}")
+    if not (np.isfinite(smooth) and smooth >= 0):
+        raise UserError(f"--smooth must be a finite sigma >= 0 frames, got {smooth}")
+    if max_frames is not None and max_frames < 1:
+        raise UserError(f"--max-frames must be >= 1, got {max_frames}")
+    if neutral_frame is not None and neutral_frame < 0:
+        raise UserError(f"--neutral-frame must be >= 0, got {neutral_frame}")
     project, mesh = _load_character(project_dir)
     model = _load_model(project, required=True)
     if model.num_vertices != mesh.num_vertices:
         raise UserError(f"blendshape model has {model.num_vertices} vertices but the character has {mesh.num_vertices}")
+    frames, fps = read_driver(driver, max_frames)  # a bad driver fails before landmarks are written
     lm_path = project.path("landmarks", "landmarks.json")
-    if lm_path.exists():
-        lm = Landmarks.from_dict(read_json(lm_path), mesh.num_vertices)
-    else:
-        print("no landmarks/landmarks.json yet: detecting them (t2bs landmarks DIR --show to check)")
+    lm = _read_landmarks(lm_path, mesh.num_vertices)
+    if lm is None:
         lm = compute_landmarks(project_dir)
     out = Path(out) if out is not None else project.path("retarget", driver.stem)
-    frames, fps = read_driver(driver, max_frames)
     bar = tqdm(total=len(frames), desc="tracking face", unit="frame")
-    track = track_face(frames, fps, TrackConfig(smooth_sigma=smooth, neutral_frame=neutral_frame,
-                                                 static=driver.is_dir()), progress=lambda d, n: bar.update(d - bar.n))
-    bar.close()
+    try:  # closed before an error prints, so the error line is not glued onto the bar
+        track = track_face(frames, fps, TrackConfig(smooth_sigma=smooth, neutral_frame=neutral_frame,
+                                                     static=driver.is_dir()), progress=lambda d, n: bar.update(d - bar.n))
+    finally:
+        bar.close()
     if track.report["missing"]:
         print(f"warning: no face in {track.report['missing']} of {len(frames)} frames "
               f"(runs {track.report['missing_runs']}); interpolated between tracked frames")
@@ -134,7 +162,11 @@ def retarget_command(
     bar = tqdm(total=len(frames), desc="solving weights", unit="frame")
     weights = solver.solve(tr.targets, tr.eye_openness, progress=lambda d, n: bar.update(d - bar.n))
     bar.close()
-    out.mkdir(parents=True, exist_ok=True)
+    if not np.isfinite(weights).all():  # never write a NaN rig over a good one
+        raise UserError(f"the solve produced NaN weights for {int((~np.isfinite(weights)).any(1).sum())} frames; "
+                        f"nothing was written to {out}")
+    staged = OutputSet(out, marker="report.json")  # the files below land in `out` together at commit()
+    out = staged.folder
     times = np.arange(len(frames)) / fps
     with open(out / "weights.csv", "w", newline="") as f:
         wr = csv.writer(f)
@@ -156,6 +188,7 @@ def retarget_command(
     write_json(out / "report.json", {"driver": str(driver), "frames": len(frames), "fps": fps, "tracking": track.report,
                                      "landmarks_backend": lm.backend, "scales": tr.scales,
                                      "seconds": round(time.perf_counter() - t0, 2)})
+    out = staged.commit()
     project.record_stage("retarget", backend="mediapipe-0.10.21", config={"driver": str(driver), "smooth": smooth,
                                                                           "neutral_frame": track.neutral})
     print(f"retargeted {len(frames)} frames -> {out}/weights.csv, animation.glb, preview.mp4")

@@ -26,13 +26,14 @@ from tqdm import tqdm
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_VIEWS, frontal_camera
-from t2bs.project import Project, content_key, is_done, mark_done, read_json
+from t2bs.project import Project, content_key, is_done, mark_done, output_set, read_json
 from t2bs.video.defects import preset
-from t2bs.video.grid import import_image_grid, load_grid, save_grid
+from t2bs.video.grid import VIDEO_SUFFIXES, import_image_grid, load_grid, save_grid
 from t2bs.video.prompts import (EXPRESSIONS, SAMPLES_PER_PROMPT, VideoJob, load_prompt_list, make_jobs,
                                 resolve_expressions, slug, video_prompt)
 from t2bs.video.sheets import save_contact_sheet
 from t2bs.video.synth import GridConfig, check_config, make_grid
+from t2bs.project import locked
 
 GRID_VERSION_KEY = "t2bs-videos-1"  # bump when the animator or defects change what a grid holds
 
@@ -51,13 +52,18 @@ def character_prompt(project: Project) -> str:
 def parse_expressions(prompts: str, backend: str) -> list[str]:
     """'all', a comma list, or a prompt-list file (text or JSON)."""
     path = Path(prompts)
-    if prompts.strip().lower() != "all" and (path.suffix.lower() in (".txt", ".json") or path.is_file()):
+    try:
+        is_file = path.is_file()
+    except OSError:  # a long prompt list is not a file name (ENAMETOOLONG)
+        is_file = False
+    if prompts.strip().lower() != "all" and (path.suffix.lower() in (".txt", ".json") or is_file):
         items = load_prompt_list(path)
         # A video model takes any text; the offline animator checks words when it animates.
         return resolve_expressions(items, allow_custom=True)
     return resolve_expressions(prompts, allow_custom=backend == "cogvideox")
 
 
+@locked("project_dir", "videos")  # one run at a time per project (issue 39)
 def videos_command(
     project_dir: Path = typer.Argument(..., help="Project folder (with character/mesh.glb)."),
     prompts: str = typer.Option("all", help="all, a comma list of expressions, or a prompt-list file (.txt one per line, .json)."),
@@ -134,15 +140,23 @@ def videos_command(
             t1 = time.perf_counter()
             grid = make_grid(mesh, job.expression, job.sample, seed, cfg, defect_cfg, renderer, prompt=job.prompt, progress=bar)
             grid.meta.update({"video_id": job.video_id, "character_prompt": character, "defect_preset": defects})
-            save_grid(grid, vdir)
-            save_contact_sheet(grid, vdir / "contact_sheet.png")
-            mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="procedural")
+            write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="procedural")
             made.append(job.video_id)
     seconds = time.perf_counter() - t0
     project.record_stage("videos", backend="procedural", config={**asdict(cfg), "defects": defects, "seed": seed, "samples": samples},
                          defects=asdict(defect_cfg), expressions=expressions,
                          videos=[j.video_id for j in jobs], made=len(made), skipped=len(skipped), seconds=round(seconds, 3))
     print(f"videos: {len(made)} made, {len(skipped)} up to date, in {project.path('videos')} ({seconds:.1f} s)")
+
+
+def write_grid_folder(grid, vdir: Path, key: str, **info) -> None:
+    """The grid, its contact sheet and done.json as one set (project.output_set): a run killed while
+    regenerating a grid leaves the previous grid and its done.json as they were, never the old
+    done.json beside new, half-written frames."""
+    with output_set(vdir, marker="done.json", exclusive=True) as stage:
+        save_grid(grid, stage)
+        save_contact_sheet(grid, stage / "contact_sheet.png")
+        mark_done(stage, key, **info)
 
 
 def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, cfg: GridConfig, steps: int, seed: int) -> None:
@@ -169,9 +183,7 @@ def _cogvideox(project: Project, jobs: list[VideoJob], checkpoint: Path | None, 
         grid = fixed_view_grid(video, frontal_camera(front.shape[0]), vcfg.fps, {
             "prompt": job.prompt, "expression": job.expression, "sample": job.sample, "seed": seed,
             "video_id": job.video_id, "checkpoint": str(checkpoint), "cogvideox": asdict(vcfg)})
-        save_grid(grid, vdir)
-        save_contact_sheet(grid, vdir / "contact_sheet.png")
-        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="cogvideox")
+        write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="cogvideox")
     project.record_stage("videos", backend="cogvideox", checkpoint=str(checkpoint), config=asdict(vcfg),
                          videos=[j.video_id for j in jobs])
 
@@ -249,9 +261,8 @@ def _sv4d2(project: Project, prompts: str, samples: int, checkpoint: Path | None
                          gt, "sv4d2", meta).validate("sv4d2 grid")
         prior = read_json(vdir / "done.json") if (vdir / "done.json").exists() else {}
         source_key = prior.get("source_key") if prior.get("backend") == "sv4d2" else prior.get("key")
-        save_grid(grid, vdir)
-        save_contact_sheet(grid, vdir / "contact_sheet.png")
-        mark_done(vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="sv4d2", source_key=source_key)
+        write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="sv4d2",
+                          source_key=source_key)
         made.append(video_id)
     seconds = time.perf_counter() - t0
     # Keep what made the fixed-view videos (backend, checkpoint) in the record: the report names both.
@@ -317,15 +328,15 @@ def _import(project: Project, source: Path, expression: str | None, sample: int,
     expr = resolve_expressions([expression], allow_custom=True)[0]
     video_id = f"{slug(expr)}-s{sample}"
     single = source.is_file()
-    grid = import_image_grid(source, views=views if single or views != ORBIT_VIEWS else None,
+    # A flat folder of images needs a view count, so --views counts even at its default (15);
+    # view sub-folders and view videos carry their own count, checked only when --views is changed.
+    flat = source.is_dir() and not any(p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES for p in source.iterdir())
+    grid = import_image_grid(source, views=views if single or flat or views != ORBIT_VIEWS else None,
                              frames=frames if single else None,
                              meta={"expression": expr, "sample": sample, "video_id": video_id,
                                    "prompt": video_prompt(character_prompt(project), expr)}, shading=shading)
     vdir = project.path("videos", video_id)
-    save_grid(grid, vdir)
-    save_contact_sheet(grid, vdir / "contact_sheet.png")
-    key = content_key(source, views, frames, shading)
-    mark_done(vdir, key, backend=grid.backend)
+    write_grid_folder(grid, vdir, content_key(source, views, frames, shading), backend=grid.backend)
     load_grid(vdir)  # what the next stage will read: check it now
     print(f"imported {grid.num_views} views x {grid.num_frames} frames into {vdir} "
           f"(masks from {grid.meta['masks_from']}, shading {shading})")

@@ -214,16 +214,17 @@ def load_grid(folder: str | os.PathLike, load_frames: bool = True) -> VideoGrid:
     masks = None
     if (folder / "masks.npz").exists():
         try:
-            with np.load(folder / "masks.npz") as z:
+            import zipfile
+
+            with np.load(folder / "masks.npz", allow_pickle=False) as z:
                 masks = z["masks"].astype(bool)
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise UserError(f"{src}/masks.npz: unreadable ({exc})") from None
     gt = None
     if (folder / "gt_vertices.npy").exists():
-        try:
-            gt = np.load(folder / "gt_vertices.npy").astype(np.float32)
-        except (ValueError, OSError) as exc:
-            raise UserError(f"{src}/gt_vertices.npy: unreadable ({exc})") from None
+        from t2bs.project import read_array
+
+        gt = read_array(folder / "gt_vertices.npy", "ground-truth vertices", ndim=3, trailing=(3,)).astype(np.float32)
     grid = VideoGrid(frames, cameras, times, canonical, masks, gt, str(info.get("backend", "unknown")), dict(info.get("meta") or {}))
     return grid.validate(src)
 
@@ -296,7 +297,8 @@ def read_video(path: Path) -> np.ndarray:
     try:
         frames = iio.imread(path, index=None, plugin="pyav" if _has_pyav() else None)
     except Exception as exc:  # imageio raises many types for a broken or unsupported file
-        raise UserError(f"{path}: not a readable video ({type(exc).__name__}: {exc})") from None
+        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ""  # not ffmpeg's whole banner
+        raise UserError(f"{path}: not a readable video ({type(exc).__name__}{': ' + first if first else ''})") from None
     frames = np.asarray(frames)
     if frames.ndim == 3:
         frames = frames[None]

@@ -67,6 +67,9 @@ def video_prompt(character: str, expression: str) -> str:
     return PROMPT_TEMPLATE.format(character=character, expression=expression.strip())
 
 
+MAX_PROMPT_CHARS = 300  # longer than any video model's text window (CogVideoX: 226 tokens)
+
+
 def resolve_expressions(spec: str | list[str] | None, known: tuple[str, ...] | list[str] = EXPRESSIONS,
                         allow_custom: bool = False) -> list[str]:
     """'all' / None -> every known expression; a comma list or list of names/slugs -> those, in order.
@@ -81,6 +84,10 @@ def resolve_expressions(spec: str | list[str] | None, known: tuple[str, ...] | l
     items = [s for s in items if s]
     if not items:
         raise UserError("no expression prompts given")
+    longest = max(items, key=len)
+    if len(longest) > MAX_PROMPT_CHARS:  # it names a folder (video id) and goes into a text encoder
+        raise UserError(f"an expression prompt has {len(longest)} characters; at most {MAX_PROMPT_CHARS} "
+                        f"(starts {longest[:40]!r})")
     by_key = {}
     for e in known:
         by_key[e.lower()] = e

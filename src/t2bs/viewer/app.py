@@ -182,10 +182,9 @@ def list_retargets(root: Path) -> list[str]:
 def load_capture(root: Path, video_id: str, n: int) -> Capture:
     """Reconstructed vertices of one capture and the canonical view of its input grid."""
     vpath = root / "recon" / video_id / "vertices.npy"
-    try:
-        verts = np.load(vpath, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{vpath}: unreadable ({exc})") from None
+    from t2bs.project import read_array
+
+    verts = read_array(vpath, "reconstructed vertices", finite=False)  # empty, torn or pickled: one error line
     if verts.ndim != 3 or verts.shape[1:] != (n, 3) or verts.shape[0] == 0:
         raise UserError(f"{vpath}: vertices {verts.shape} do not match the character [T, {n}, 3]")
     if not np.isfinite(verts).all():

@@ -26,6 +26,30 @@ def exposure_warning(host: str) -> str | None:
             "and read the project (no authentication)")
 
 
+def check_bindable(host: str) -> None:
+    """UserError unless this machine can listen on ``host`` (tried on a free port, closed at once).
+
+    viser binds in a background thread: an address that is not this machine's only logged a
+    warning there while the command waited forever (issue 39), so the address is tried here first."""
+    import socket
+
+    name = host.strip().strip("[]")
+    try:
+        infos = socket.getaddrinfo(name, 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise UserError(f"--host {host}: cannot resolve the address ({getattr(exc, 'strerror', None) or exc})") from None
+    errors = []
+    for family, kind, proto, _, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as sock:
+                sock.bind(addr)
+                return
+        except OSError as exc:
+            errors.append(exc.strerror or str(exc))
+    raise UserError(f"--host {host}: this machine cannot listen on that address ({errors[0] if errors else 'no address'}); "
+                    "use 127.0.0.1, 0.0.0.0 or one of this machine's own addresses")
+
+
 def view_command(
     project_dir: Path = typer.Argument(..., help="Project folder (made by `t2bs create` or the stage commands)."),
     port: int = typer.Option(8080, "--port", help="Port to serve on (0 = any free port; a busy port moves to the next free one)."),
@@ -38,6 +62,7 @@ def view_command(
 
     if not host.strip():
         raise UserError("--host must not be empty")
+    check_bindable(host)
     warning = exposure_warning(host)
     if warning:
         print(warning, file=sys.stderr, flush=True)
