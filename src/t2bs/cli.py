@@ -47,6 +47,9 @@ app.command("gallery")(_character.gallery_command)
 from t2bs.pipeline import create_command  # noqa: E402
 
 app.command("create")(create_command)
+from t2bs.rig.commands import autorig_command  # noqa: E402
+
+app.command("autorig")(autorig_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
 from t2bs.eval.bench_raster import bench_raster_command  # noqa: E402
 

@@ -156,6 +156,8 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
         "videos": videos,
         "blendshapes": blend,
         "versions": manifest.get("versions", {}),
+        "motion_source": stages.get("videos", {}).get("motion_source", "rig"),
+        "autorig": stages.get("videos", {}).get("autorig"),
     }
     write_json(project.path("report.json"), report)
     _write_markdown(project, report)
@@ -168,6 +170,11 @@ def _write_markdown(project: Project, report: dict) -> None:
     lines = [f"# t2bs report: {report['prompt']}", "", f"Preset `{report['preset']}`; total {report['total_seconds']:.0f} s.", "",
              "## Backends", ""]
     lines += [f"- {stage}: {backend}" for stage, backend in report["backends"].items()]
+    if report.get("motion_source") == "autorig" and report.get("autorig"):
+        a = report["autorig"]
+        lines += ["", f"Motion source: the **auto rig** (the mesh had no face rig): {len(a['shapes'])} ARKit shapes from "
+                  f"{a['landmarks']} landmarks in character/autorig.glb ({len(a['missing'])} missing, reasons in "
+                  f"character/autorig.json); mouth: {a.get('mouth')}."]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
     lines += ["", "## Videos", "", "| video | p2p moving (static) | NC (static) | seconds | contact sheet |", "|---|---|---|---|---|"]
