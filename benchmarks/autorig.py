@@ -1,11 +1,13 @@
 """How close the automatic face rig comes to an artist's (or the generator's) rig.
 
     python3 benchmarks/autorig.py [--assets turtle,facecap,vipe_hero_head] [--procedural fox,human,frog,robot]
-                                  [--out benchmarks/results/autorig] [--sheet docs/images/autorig.png]
+                                  [--user-landmarks turtle] [--out benchmarks/results/autorig] [--sheet docs/images/autorig.png]
 
 For every asset: move it to the canonical frame, keep its own morph targets as the reference, strip
 them, find the face on the stripped mesh (part labels for procedural characters, MediaPipe on the
-frontal render for the shared assets: nothing of the rig is used), auto-rig it, and compare each
+frontal render for the shared assets: nothing of the rig is used; with ``--user-landmarks`` an asset
+is run again with the 20 points `t2bs landmarks` finds on its rig, as a user's --landmarks file would
+give them: where MediaPipe misplaces a cartoon face), auto-rig it, and compare each
 auto-rig shape with the rig's matching one:
 - ``cos``: cosine of the two per-vertex displacement fields (flattened [N * 3]);
 - ``p2p``: mean per-vertex distance after the best scale s of the auto shape (s = <a, b> / <a, a>),
@@ -90,15 +92,25 @@ def compare(a: np.ndarray, b: np.ndarray, diag: float) -> dict:
             "rel": float(d.sum() / np.linalg.norm(b, axis=1).sum()), "scale": s}
 
 
-def bench_one(spec: str, renderer) -> tuple[dict, object, object]:
+def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, object, object]:
+    """``user_landmarks``: stand in for a user's --landmarks file with the 20 points `t2bs landmarks`
+    finds on the rigged asset (motion backend): only where the face is comes from the rig, no shape."""
     from t2bs.rig.autorig import autorig
-    from t2bs.rig.face import find_face
+    from t2bs.rig.face import FaceLandmarks, find_eyeballs, find_face
 
     name, mesh = load(spec)
     ref, swapped = sided(mesh)
     stripped = replace(mesh, morph_targets={})
     t0 = time.perf_counter()
-    face = find_face(stripped, renderer=renderer, source_name=name)
+    if user_landmarks:
+        from t2bs.retarget.landmarks import detect_landmarks
+
+        lm, _ = detect_landmarks(mesh, backend="motion", renderer=renderer)
+        face = FaceLandmarks(np.asarray(lm.vertex_ids, np.int64), "file (t2bs landmarks on the rigged asset)", {},
+                             find_eyeballs(stripped))
+        name = f"{name} (user landmarks)"
+    else:
+        face = find_face(stripped, renderer=renderer, source_name=name)
     t1 = time.perf_counter()
     rig = autorig(stripped, face)
     t2 = time.perf_counter()
@@ -159,15 +171,17 @@ def main(
     procedural: str = typer.Option("fox,human,frog,robot", help="Procedural archetypes (comma list, '' for none)."),
     out: Path = typer.Option(Path("benchmarks/results/autorig"), help="Output stem: OUT.json and OUT.md."),
     sheet_path: Path = typer.Option(None, "--sheet", help="Also write a contact sheet PNG (reference / auto per shape)."),
+    user_landmarks: str = typer.Option("turtle", help="Assets also run with a user's landmarks file (comma list, '' for none)."),
 ) -> None:
     from t2bs.project import write_json
     from t2bs.render.mesh_renderer import MeshRenderer
 
-    specs = [a for a in assets.split(",") if a] + [f"procedural:{p}" for p in procedural.split(",") if p]
+    specs = [(a, False) for a in assets.split(",") if a] + [(a, True) for a in user_landmarks.split(",") if a]
+    specs += [(f"procedural:{p}", False) for p in procedural.split(",") if p]
     results, items = [], []
     with MeshRenderer() as renderer:
-        for spec in specs:
-            res, ref, rig = bench_one(spec, renderer)
+        for spec, user in specs:
+            res, ref, rig = bench_one(spec, renderer, user)
             results.append(res)
             items.append((res, ref, rig))
             print(json.dumps({k: res[k] for k in ("asset", "landmarks", "shapes")}

@@ -56,7 +56,7 @@ LOWER_LIP = {"left": 17, "mid": 18, "right": 19}
 @dataclass
 class AutoRigConfig:
     jaw_open: float = 0.45  # lower-lip travel of a full jawOpen along its arc, in mouth widths
-    lid_meet: float = 0.35  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid
+    lid_meet: float = 0.2  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid (human lower lids move little)
     smile: float = 0.22  # mouth-corner travel of a full smile, in mouth widths
     frown: float = 0.12  # mouth-corner travel of a full frown, in mouth widths
     brow: float = 0.10  # brow travel, in inter-ocular distances
@@ -301,6 +301,14 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     else:
         missing["tongueOut"] = "no tongue part (a part labelled 'tongue')"
 
+    # Small parts sitting on the skin (lashes, brow cards, freckle decals) follow the skin under them;
+    # teeth, tongue and eyeballs keep their own bones (jaw, eyeLook*).
+    idx, nn = _attachments(f, comp, eyeballs) if not mesh.part_names or len(mesh.part_names) < 3 else (np.zeros(0, int),) * 2
+    # (part-labelled characters: every part already has its role -- brows, lids, lashes move as such)
+    info["attached_vertices"] = int(len(idx))
+    for name, d in shapes.items():
+        if len(idx) and not name.startswith(("jaw", "eyeLook", "tongue")):
+            d[idx] = d[nn]
     out: dict[str, np.ndarray] = {}
     for name in ARKIT_NAMES:
         if name in shapes:
@@ -312,6 +320,31 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     missing = {n: missing[n] for n in ARKIT_NAMES if n in missing}
     info["hinge"] = [round(float(x), 5) for x in hinge]
     return AutoRig(out, missing, landmarks, info)
+
+
+def _attachments(f: _Face, comp: np.ndarray, eyeballs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(vertex ids of parts lying on the skin, nearest skin vertex of each): every vertex of the part
+    within 0.15 inter-ocular distances of the skin, and the part not in the mouth (teeth, tongue)."""
+    from scipy.spatial import cKDTree
+
+    skin_ids = np.nonzero(f.skin)[0]
+    tree = cKDTree(f.v[skin_ids])
+    balls = np.concatenate([np.asarray(e, np.int64) for e in eyeballs.values()]) if eyeballs else np.zeros(0, np.int64)
+    idx, nn = [], []
+    for c in np.unique(comp[~f.skin]):
+        part = np.setdiff1d(np.nonzero(comp == c)[0], balls)
+        if len(part) == 0:
+            continue
+        cen = f.v[part].mean(0)
+        if abs(cen[0] - f.mc[0]) < 0.6 * f.mw and abs(cen[1] - f.mc[1]) < 0.35 * f.em:
+            continue  # in the mouth
+        dist, j = tree.query(f.v[part])
+        if dist.max() < 0.15 * f.io:
+            idx.append(part)
+            nn.append(skin_ids[j])
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(idx), np.concatenate(nn)
 
 
 def _push(f: _Face, dist: np.ndarray, radius: float, direction, amount: float) -> np.ndarray:

@@ -156,10 +156,24 @@ def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], s
     for ids in eyeballs.values():
         vis[ids] = False  # lid points belong on the lid, not on the eyeball behind it
     uv, _ = cam.project(mesh.vertices.astype(np.float64))
+    # The face's skin is the part with the most visible vertices inside the detected face: points are
+    # lifted onto it, not onto lashes, brows or hair cards floating in front of it.
+    lo, hi = lm[0, :, :2].min(0), lm[0, :, :2].max(0)
+    comp = welded_components(mesh.vertices, mesh.faces)
+    inside = vis & np.all((uv >= lo) & (uv <= hi), axis=1)
+    if inside.any():
+        vis &= comp == np.bincount(comp[inside]).argmax()
     side = np.zeros(20, int)
     side[list(UPPER_POINTS)] = 1
     side[list(LOWER_POINTS)] = -1
-    ids = _lift(lm[0, MEDIAPIPE_20, :2], uv, vis, side)
+    pts = lm[0, MEDIAPIPE_20, :2]
+    ids = _lift(pts, uv, vis, side)
+    # A closed mouth (or eye) puts an upper and a lower point on one pixel; the lower one must then
+    # land strictly below the vertex its upper partner took, on the other lip.
+    for up, lo in ((13, 19), (14, 18), (15, 17), (1, 5), (2, 4), (7, 11), (8, 10)):
+        below = vis & (uv[:, 1] > uv[ids[up], 1] + 0.25)
+        if below.any():
+            ids[lo] = _lift(pts[[lo]], uv, below, np.array([-1]))[0]
     names = list(MEDIAPIPE_NAMED)
     named_ids = _lift(lm[0, [MEDIAPIPE_NAMED[n] for n in names], :2], uv, vis, np.zeros(len(names), int))
     return ids, {n: int(i) for n, i in zip(names, named_ids)}
