@@ -374,6 +374,10 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
         lower[named["chin"]] = True
     static = f.skin & ((v[:, 1] > f.mc[1] + 0.45 * f.em) | (v[:, 2] < hinge[2]) | (v[:, 1] < chin_y - 0.3 * f.em))
     static[ids[[13, 14, 15]]] = True
+    if "jaw" in mesh.part_names:  # a labelled jaw (procedural characters): it and the lower lip are the jaw, the head stays
+        lower |= mesh.part_mask(*[n for n in ("jaw", "lip_lower") if n in mesh.part_names])
+        if "head" in mesh.part_names:
+            static |= mesh.part_mask("head")
     static &= ~lower
     d_s, _ = surf.distance(np.nonzero(static)[0])
     d_l, _ = surf.distance(np.nonzero(lower)[0])
