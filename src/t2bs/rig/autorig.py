@@ -444,7 +444,8 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
 
     up_seeds, up_prof = margin([0, 1, 2, 3])
     lo_seeds, lo_prof = margin([0, 5, 4, 3])
-    r_u, r_l = 0.9 * we * config.falloff, 0.5 * we * config.falloff
+    # Anatomy: the moving upper lid spans lash line to crease (about a third of the eye's width), the lower less.
+    r_u, r_l = 0.45 * we * config.falloff, 0.3 * we * config.falloff
     d_u, src_u = surf.distance(up_seeds, limit=2 * r_u)
     d_l, src_l = surf.distance(lo_seeds, limit=2 * r_u)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway

@@ -10,6 +10,9 @@ Sources, first that works:
 2. Part labels (procedural characters): ``t2bs.retarget.landmarks`` with the ``parts`` backend.
 3. MediaPipe face mesh on the frontal render (humanoid faces, also most cartoon faces with two
    eyes and a mouth): the 20 points and the brows / chin, lifted to the nearest visible vertex.
+   Where the mesh has separate eyeball parts, the eye points come from them instead (the skin
+   just outside what the front camera sees of each ball): geometry beats a detector trained on
+   human photos when the eyes are a cartoon's.
 
 Eyeballs come from part labels (eye_left / eye_right) or, on unlabelled meshes, from separate
 sphere-shaped parts (a mirrored pair): they give the centre the lids turn about and the vertices
@@ -43,7 +46,7 @@ HOW_TO = ("give them with --landmarks FILE: {\"vertex_ids\": [20 vertex ids in t
 @dataclass
 class FaceLandmarks:
     vertex_ids: np.ndarray  # [20] int vertex ids, 68-point order 36-47, 60-67
-    source: str  # "file", "parts" or "mediapipe"
+    source: str  # "file", "parts", "mediapipe" or "mediapipe + eye parts"
     named: dict[str, int] = field(default_factory=dict)  # NAMED_POINTS -> vertex id (those known)
     eyeballs: dict[str, np.ndarray] = field(default_factory=dict)  # "left"/"right" -> [M] vertex ids
 
@@ -140,8 +143,9 @@ def _lift(points2d: np.ndarray, uv: np.ndarray, candidates: np.ndarray, side: np
     return out
 
 
-def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> tuple[np.ndarray, dict[str, int]] | str:
-    """MediaPipe face mesh on the frontal render -> (ids [20], named ids); a reason string when it finds nothing."""
+def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> tuple | str:
+    """MediaPipe face mesh on the frontal render -> (ids [20], named ids, the 20 points [20, 2] in pixels);
+    a reason string when it finds nothing."""
     from t2bs.geometry.camera import frontal_camera
     from t2bs.retarget.face_tracking import MEDIAPIPE_20, mediapipe_available, run_face_mesh
 
@@ -176,7 +180,51 @@ def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], s
             ids[lo] = _lift(pts[[lo]], uv, below, np.array([-1]))[0]
     names = list(MEDIAPIPE_NAMED)
     named_ids = _lift(lm[0, [MEDIAPIPE_NAMED[n] for n in names], :2], uv, vis, np.zeros(len(names), int))
-    return ids, {n: int(i) for n, i in zip(names, named_ids)}
+    return ids, {n: int(i) for n, i in zip(names, named_ids)}, pts
+
+
+def eye_parts_at(mesh: Mesh, renderer, points2d: np.ndarray, size: int = 512) -> dict[str, np.ndarray]:
+    """Separate eye parts (a flat or painted eye disc, not a ball) seen at the detected eye centres:
+    "left"/"right" -> vertex ids of the small part the front camera sees there ({} if the skin is seen)."""
+    from t2bs.geometry.camera import frontal_camera
+
+    fid = renderer.render(mesh, frontal_camera(size), shading="unlit").face_id
+    comp = welded_components(mesh.vertices, mesh.faces)
+    counts = np.bincount(comp)
+    out = {}
+    for side, sl in (("right", slice(0, 6)), ("left", slice(6, 12))):
+        x, y = np.round(points2d[sl].mean(0)).astype(int)
+        if not (0 <= y < fid.shape[0] and 0 <= x < fid.shape[1]) or fid[y, x] < 0:
+            return {}
+        c = comp[mesh.faces[fid[y, x], 0]]
+        if counts[c] == counts.max() or counts[c] > 0.1 * mesh.num_vertices:
+            return {}  # the eye is painted on the skin
+        out[side] = np.nonzero(comp == c)[0]
+    return out if out.get("left") is not None and out.get("right") is not None and \
+        not np.array_equal(out["left"], out["right"]) else {}
+
+
+def eyes_from_parts(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> np.ndarray | None:
+    """[12] eye landmark ids (36-47) from separate eye parts (balls or discs): the lid margin is the
+    surface just outside what the frontal camera sees of each part (as the parts backend does with
+    labelled eyes). None when a part is not seen from the front."""
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.retarget.landmarks import EYE_ANGLES, contour_points, largest_component, lift_points
+
+    cam = frontal_camera(size)
+    fid = renderer.render(mesh, cam, shading="unlit").face_id
+    seen_vertex = np.where(fid >= 0, mesh.faces[np.maximum(fid, 0), 0], -1)
+    balls = np.concatenate(list(eyeballs.values()))
+    vis = renderer.vertex_visibility(mesh, cam)
+    vis[balls] = False
+    out = []
+    for side in ("right", "left"):  # 36-41 then 42-47
+        mask = largest_component(np.isin(seen_vertex, eyeballs[side]))
+        if mask.sum() < 16:
+            return None
+        p2, _ = contour_points(mask, EYE_ANGLES)
+        out.append(lift_points(p2, cam, mesh.vertices, vis, mask, "outside"))
+    return np.concatenate(out).astype(np.int64)
 
 
 def find_face(mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use_mediapipe: bool = True,
@@ -206,7 +254,14 @@ def find_face(mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use
             if isinstance(got, str):
                 reasons.append(got)
             else:
-                return FaceLandmarks(got[0], "mediapipe", got[1], eyeballs)
+                ids, source = got[0], "mediapipe"
+                # Separate eye parts pin the eyes down geometrically; a detector trained on human
+                # photos only guesses them on a cartoon (it keeps the mouth and brows).
+                parts = eyeballs or eye_parts_at(mesh, renderer, got[2])
+                eyes = eyes_from_parts(mesh, renderer, parts) if parts else None
+                if eyes is not None:
+                    ids, source = np.concatenate([eyes, ids[12:]]), "mediapipe + eye parts"
+                return FaceLandmarks(ids, source, got[1], eyeballs)
         else:
             reasons.append("MediaPipe not tried")
     finally:
