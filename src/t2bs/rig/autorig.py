@@ -25,7 +25,7 @@ deformer evaluated once at full strength and stored as per-vertex offsets [N, 3]
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -99,14 +99,29 @@ def rotate_about(points: np.ndarray, centre: np.ndarray, axis: np.ndarray, angle
 class Surface:
     """Geodesic distances along a mesh's edges (UV-seam copies of a vertex welded into one node)."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, glue: float = 0.0, exclude: np.ndarray | None = None):
+        """``glue`` > 0: parts whose surfaces come within ``glue`` of each other (lips laid on a head,
+        a separate jaw under the cheeks) are joined there, so a falloff flows from one to the other;
+        ``exclude`` [N] bool vertices are never joined (eyeballs)."""
         from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
 
         self.node, first = weld_index(vertices)  # [N] node of each vertex, [M] a vertex of each node
         e = welded_edges(self.node, faces)
         vn = np.asarray(vertices, np.float64)[first]
-        length = np.linalg.norm(vn[e[:, 0]] - vn[e[:, 1]], axis=1)
         m = len(first)
+        if glue > 0:
+            from scipy.spatial import cKDTree
+
+            _, part = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m)), directed=False)
+            pairs = cKDTree(vn).query_pairs(glue, output_type="ndarray")
+            ok = part[pairs[:, 0]] != part[pairs[:, 1]]
+            if exclude is not None:
+                bad = np.zeros(m, bool)
+                bad[self.node[np.asarray(exclude, bool)]] = True
+                ok &= ~bad[pairs[:, 0]] & ~bad[pairs[:, 1]]
+            e = np.concatenate([e, pairs[ok]])
+        length = np.maximum(np.linalg.norm(vn[e[:, 0]] - vn[e[:, 1]], axis=1), 1e-12)
         self.graph = coo_matrix((length, (e[:, 0], e[:, 1])), shape=(m, m)).tocsr()
         self.first = first
 
@@ -236,7 +251,14 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
             off[ball] = rotate_about(v[ball], c, np.asarray(axis, float), ang) - v[ball]
             shapes[f"eyeLook{d}{cap}"] = off
 
-    # ---- mouth
+    # ---- mouth, cheeks, nose, brows: falloffs flow across touching parts (lips laid on a head)
+    balls = np.zeros(len(v), bool)
+    for e in eyeballs.values():
+        balls[e] = True
+    f_lids = f
+    surf = Surface(v, mesh.faces, glue=0.02 * f.io, exclude=balls)
+    reach, _ = surf.distance(ids)
+    f = replace(f, skin=f.skin | (np.isfinite(reach) & ~balls))
     d_up, _ = surf.distance(ids[[13, 14, 15]])
     d_lo, _ = surf.distance(ids[[17, 18, 19]])
     with np.errstate(invalid="ignore"):  # parts neither lip reaches: nan, no mouth weight there
@@ -303,7 +325,7 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
 
     # Small parts sitting on the skin (lashes, brow cards, freckle decals) follow the skin under them;
     # teeth, tongue and eyeballs keep their own bones (jaw, eyeLook*).
-    idx, nn = _attachments(f, comp, eyeballs) if not mesh.part_names or len(mesh.part_names) < 3 else (np.zeros(0, int),) * 2
+    idx, nn = _attachments(f_lids, comp, eyeballs) if not mesh.part_names or len(mesh.part_names) < 3 else (np.zeros(0, int),) * 2
     # (part-labelled characters: every part already has its role -- brows, lids, lashes move as such)
     info["attached_vertices"] = int(len(idx))
     for name, d in shapes.items():
@@ -360,6 +382,10 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     named = landmarks.named
     if "jaw_hinge" in named:
         hinge = np.array([f.mc[0], v[named["jaw_hinge"], 1], v[named["jaw_hinge"], 2]])
+    elif "jaw" in mesh.part_names and mesh.part_mask("jaw").any():
+        # A labelled jaw turns about its back end (where a mandible's condyle is), at the mouth line.
+        jz = v[mesh.part_mask("jaw"), 2]
+        hinge = np.array([f.mc[0], float(f.seam_y(np.array([f.mc[0]]))[0]), jz.min() + 0.1 * np.ptp(jz)])
     else:
         # Human skulls: the jaw joint sits in front of the ear, about halfway between the mouth and
         # the eyes in height and a little more than an eye distance behind the lips.
