@@ -214,3 +214,18 @@ def test_autorig_command_keeps_vertex_order_and_animator_plays_it(tmp_path, head
     assert "eyeBlinkLeft" in anim.names and anim.weights[:, anim.names.index("eyeBlinkLeft")].max() > 0.5
     summary = json.loads(out.with_suffix(".json").read_text())
     assert summary["landmarks"]["source"] == "file" and "tongueOut" in summary["missing"]
+
+
+def test_landmarks_stage_reuses_the_auto_rigs_landmarks(tmp_path, head):
+    """A static character animated through the auto rig has no blink / mouth shapes of its own for the
+    motion landmark backend: `t2bs landmarks` (auto) takes the auto rig's 20 points."""
+    from t2bs.geometry.io import save_mesh
+    from t2bs.project import Project, write_json
+    from t2bs.retarget.commands import compute_landmarks
+
+    mesh, lm, *_ = head
+    project = Project(tmp_path / "proj")
+    save_mesh(mesh, project.mesh_path)
+    write_json(project.path("character", "autorig.json"), {"landmarks": {"vertex_ids": lm.tolist(), "source": "file"}})
+    got = compute_landmarks(project.root, "auto")
+    assert got.backend == "autorig" and got.vertex_ids.tolist() == lm.tolist()
