@@ -41,7 +41,8 @@ COMPARISONS: dict[str, tuple[list, list[str]]] = {
     "eyeBlinkRight": ([("eyeBlink_R",), ("eyeBlinkRight",), ("eyeRightClose",), ("blink_r",), ("blink_right",), ("blinkRight",)], ["eyeBlinkRight"]),
     "mouthSmileLeft": ([("mouthSmile_L",), ("mouthSmileLeft",), ("smileLeft",)], ["mouthSmileLeft"]),
     "mouthSmileRight": ([("mouthSmile_R",), ("mouthSmileRight",), ("smileRight",)], ["mouthSmileRight"]),
-    "smile (both sides)": ([("mouthSmile_L", "mouthSmile_R"), ("smileLeft", "smileRight"), ("smile",), ("fun",)],
+    # VRM's fun / joy are whole expressions (brows, closed eyes, open mouth), not a smile: no match.
+    "smile (both sides)": ([("mouthSmile_L", "mouthSmile_R"), ("smileLeft", "smileRight"), ("smile",)],
                            ["mouthSmileLeft", "mouthSmileRight"]),
     "brows up": ([("browInnerUp", "browOuterUp_L", "browOuterUp_R"), ("eyeBrowLeftUp", "eyeBrowRightUp"), ("brow_up",)],
                  ["browInnerUp", "browOuterUpLeft", "browOuterUpRight"]),
