@@ -229,3 +229,52 @@ def test_landmarks_stage_reuses_the_auto_rigs_landmarks(tmp_path, head):
     write_json(project.path("character", "autorig.json"), {"landmarks": {"vertex_ids": lm.tolist(), "source": "file"}})
     got = compute_landmarks(project.root, "auto")
     assert got.backend == "autorig" and got.vertex_ids.tolist() == lm.tolist()
+
+
+def test_picked_landmarks_by_ray_and_saved_for_the_auto_rig(tmp_path, head):
+    from t2bs.rig.face import read_landmarks_file
+    from t2bs.rig.pick import SLOTS, LandmarkPicks, ray_vertex
+
+    mesh, lm, parts, *_ = head
+    v = mesh.vertices.astype(np.float64)
+    # A ray from the front camera's side through a landmark vertex hits it (or a vertex of its triangle).
+    for k in (0, 7, 14, 18):
+        target = v[lm[k]]
+        origin = target + np.array([0.0, 0.0, 2.0])
+        vid = ray_vertex(v, mesh.faces, origin, target - origin)
+        assert np.linalg.norm(v[vid] - target) < 0.03
+    assert ray_vertex(v, mesh.faces, [5.0, 5.0, 5.0], [1.0, 0.0, 0.0]) is None  # pointing away: a miss
+    picks = LandmarkPicks(mesh.num_vertices)
+    for (slot, _), vid in zip(SLOTS, lm):
+        assert picks.next_slot() == slot  # the picker walks the 20 in order
+        picks.set(slot, int(vid))
+    picks.set("chin", int(parts["head"][0]))
+    path = picks.save(tmp_path / "landmarks.json")
+    ids, named = read_landmarks_file(path, mesh.num_vertices)
+    assert ids.tolist() == lm.tolist() and named == {"chin": int(parts["head"][0])}
+    empty = LandmarkPicks(mesh.num_vertices)
+    empty.set("36", 1)
+    with pytest.raises(UserError, match="not picked yet: 37"):
+        empty.save(tmp_path / "x.json")
+
+
+def test_viewer_click_picks_a_landmark(tmp_path):
+    pytest.importorskip("viser")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from viewer_fixture import build_fixture_project
+
+    from t2bs.viewer.app import ViewerApp
+
+    root = tmp_path / "proj"
+    build_fixture_project(root, with_model=False)
+    with ViewerApp(root, port=0) as app:
+        v = app.neutral.astype(np.float64)
+        front = int(np.argmax(v[:, 2]))
+        vid = app.pick_ray(v[front] + [0, 0, 3.0], [0, 0, -1.0])  # a click straight at the front-most point
+        assert np.linalg.norm(v[vid] - v[front]) < 0.05 and app.picks.ids["36"] == vid
+        assert app._pick_slot.value.startswith("37:")  # the picker moved on to the next point
+        with pytest.raises(UserError, match="not picked yet"):
+            app.save_landmarks()
