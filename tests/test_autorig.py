@@ -25,7 +25,7 @@ def _boundary(faces: np.ndarray) -> np.ndarray:
     return np.unique(u[c == 1])
 
 
-def synthetic_head():
+def synthetic_head(collar: bool = False):
     """A sphere head (radius 0.5, facing +Z) with two eye openings, eyeballs behind them, a slit mouth
     (the lip seam) and an upper and a lower row of teeth (boxes behind the lips).
     Returns (mesh, landmark ids [20], parts {name: vertex ids}, eyeball centres {side: [3]})."""
@@ -46,6 +46,10 @@ def synthetic_head():
         centres[side] = np.array([sx * EYE_X, EYE_Y, z_surf - BALL_R + 0.004])
         ball.apply_translation(centres[side])
         parts.append((f"eye_{side}", ball))
+    if collar:  # a separate part under the chin (clothes): not in the mouth
+        box = trimesh.creation.box(extents=(0.6, 0.08, 0.3))
+        box.apply_translation((0, -0.56, 0.1))
+        parts.append(("collar", box))
     for name, y in TEETH_Y.items():
         box = trimesh.creation.box(extents=(0.2, 0.025, 0.03))
         box.apply_translation((0, y, np.sqrt(0.25 - y ** 2) - 0.05))
@@ -278,3 +282,10 @@ def test_viewer_click_picks_a_landmark(tmp_path):
         assert app._pick_slot.value.startswith("37:")  # the picker moved on to the next point
         with pytest.raises(UserError, match="not picked yet"):
             app.save_landmarks()
+
+
+def test_a_collar_under_the_chin_does_not_follow_the_jaw():
+    mesh, lm, parts, _ = synthetic_head(collar=True)
+    rig = autorig(mesh, FaceLandmarks(lm, "file", {}, find_eyeballs(mesh)))
+    assert np.abs(rig.morph_targets["jawOpen"][parts["collar"]]).max() == 0
+    assert np.abs(rig.morph_targets["jawOpen"][parts["teeth_lower"]]).max() > 0.01

@@ -417,6 +417,10 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     for c in np.unique(comp[free]):
         idx = np.nonzero((comp == c) & free)[0]
         below = seam[idx] - v[idx, 1]
+        cen = v[idx].mean(0)
+        if not (abs(cen[0] - f.mc[0]) < f.mw and f.mc[1] - 0.6 * f.em < cen[1] < f.mc[1] + 0.3 * f.em):
+            w[idx] = 0.0  # not in the mouth (a collar, a necklace): the jaw does not carry it
+            continue
         if np.ptp(v[idx, 1]) < 0.35 * f.em:  # small (a tooth): all of it goes one way
             w[idx] = float(below.mean() > 0)
             rigid_parts += 1
