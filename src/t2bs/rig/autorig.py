@@ -227,10 +227,16 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     shapes["jawLeft"] = w_jaw[:, None] * np.array([0.12 * f.mw, 0, 0])
     shapes["jawRight"] = w_jaw[:, None] * np.array([-0.12 * f.mw, 0, 0])
 
+    # Small parts sitting on the skin (lashes, brow cards, decals) follow the skin under them: the
+    # lids turn them with the weight of their skin vertex, the other shapes copy its displacement;
+    # teeth, tongue and eyeballs keep their own bones (jaw, eyeLook*).
+    attached = _attachments(f, comp, eyeballs) if len(mesh.part_names) < 3 else (np.zeros(0, np.int64),) * 2
+    info["attached_vertices"] = int(len(attached[0]))
+
     # ---- lids and eyeballs
     upper_lid = np.zeros(len(v))  # largest upper-lid weight of either eye (brows leave the lid margin still)
     for side in ("left", "right"):
-        lid = _lids(f, surf, side, eyeballs.get(side), config)
+        lid = _lids(f, surf, side, eyeballs.get(side), config, attached)
         info[f"eye_{side}"] = lid["info"]
         cap = side.capitalize()
         shapes[f"eyeBlink{cap}"] = lid["move"](1.0, 1.0, clamp=True)
@@ -255,7 +261,6 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     balls = np.zeros(len(v), bool)
     for e in eyeballs.values():
         balls[e] = True
-    f_lids = f
     surf = Surface(v, mesh.faces, glue=0.02 * f.io, exclude=balls)
     reach, _ = surf.distance(ids)
     f = replace(f, skin=f.skin | (np.isfinite(reach) & ~balls))
@@ -323,13 +328,10 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     else:
         missing["tongueOut"] = "no tongue part (a part labelled 'tongue')"
 
-    # Small parts sitting on the skin (lashes, brow cards, freckle decals) follow the skin under them;
-    # teeth, tongue and eyeballs keep their own bones (jaw, eyeLook*).
-    idx, nn = _attachments(f_lids, comp, eyeballs) if not mesh.part_names or len(mesh.part_names) < 3 else (np.zeros(0, int),) * 2
     # (part-labelled characters: every part already has its role -- brows, lids, lashes move as such)
-    info["attached_vertices"] = int(len(idx))
+    idx, nn = attached
     for name, d in shapes.items():
-        if len(idx) and not name.startswith(("jaw", "eyeLook", "tongue")):
+        if len(idx) and not name.startswith(("jaw", "eyeLook", "tongue", "eyeBlink", "eyeWide", "eyeSquint")):
             d[idx] = d[nn]
     out: dict[str, np.ndarray] = {}
     for name in ARKIT_NAMES:
@@ -439,7 +441,8 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     return w, hinge, info
 
 
-def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: AutoRigConfig) -> dict:
+def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: AutoRigConfig,
+          attached: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line)."""
     v, pts, pid = f.v, f.P[EYES[side]], f.ids[EYES[side]]
     we = float(np.linalg.norm(pts[0] - pts[3]))
@@ -485,6 +488,9 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
     w_l = np.where(src_l >= 0, lo_prof[np.maximum(src_l, 0)], 0.0) * _falloff(d_l / r_l) * np.nan_to_num(gate_l, nan=1.0)
     w_u = np.where(np.isfinite(d_u), w_u, 0.0) * f.skin
     w_l = np.where(np.isfinite(d_l), w_l, 0.0) * f.skin
+    if attached is not None and len(attached[0]):  # parts on the lid (lashes) turn with it
+        idx, nn = attached
+        w_u[idx], w_l[idx], src_u[idx], src_l[idx] = w_u[nn], w_l[nn], src_u[nn], src_l[nn]
     th = elevation(v)
     # Each vertex turns as far as the margin point nearest to it must to reach the meeting line, so
     # the whole margin (not only its mean) closes on a lid of any shape.
