@@ -289,3 +289,31 @@ def test_a_collar_under_the_chin_does_not_follow_the_jaw():
     rig = autorig(mesh, FaceLandmarks(lm, "file", {}, find_eyeballs(mesh)))
     assert np.abs(rig.morph_targets["jawOpen"][parts["collar"]]).max() == 0
     assert np.abs(rig.morph_targets["jawOpen"][parts["teeth_lower"]]).max() > 0.01
+
+
+def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
+    """`t2bs videos` on a character without a face rig builds the auto rig (here from the user's picked
+    landmarks file) and animates it: the blinking grid's ground truth closes the lids; the manifest and
+    the grid say the motion came from the auto rig."""
+    from t2bs.geometry.io import save_mesh
+    from t2bs.project import Project, read_json, write_json
+    from t2bs.video.commands import videos_command
+    from t2bs.video.grid import load_grid
+
+    mesh, lm, parts, *_ = head
+    project = Project(tmp_path / "proj")
+    save_mesh(mesh, project.mesh_path)
+    write_json(project.path("landmarks", "landmarks.json"), {"vertex_ids": lm.tolist()})
+    videos_command(project.root, prompts="blinking", samples=1, defects="clean", frames=8, size=48, views=3, seed=0,
+                   shading="unlit", backend="procedural", checkpoint=None, steps=1, import_grid=None, expression=None, sample=0)
+    stage = read_json(project.path("manifest.json"))["stages"]["videos"]
+    assert stage["motion_source"] == "autorig" and stage["autorig"]["landmarks"] == "file"
+    assert "eyeBlinkLeft" in stage["autorig"]["shapes"]
+    grid = load_grid(project.path("videos", "blinking-s0"))
+    assert grid.meta["motion_source"] == "autorig"
+    gt = grid.gt_vertices  # [T, N, 3]: head motion + the auto rig's blink
+    # The left eye closes in some frame: the distance between its upper and lower lid points (which a
+    # rigid head motion keeps) shrinks to a fraction of the open eye's.
+    gap = np.linalg.norm(gt[:, lm[8]] - gt[:, lm[10]], axis=-1)  # [T]
+    assert gap[0] == pytest.approx(np.linalg.norm(mesh.vertices[lm[8]] - mesh.vertices[lm[10]]), rel=1e-4)
+    assert gap.min() < 0.5 * gap[0]
