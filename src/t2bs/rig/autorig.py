@@ -379,7 +379,7 @@ def _push(f: _Face, dist: np.ndarray, radius: float, direction, amount: float) -
 
 def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, eyeballs: dict, comp: np.ndarray):
     """([N] jaw weight in [0, 1], hinge point [3], info) -- see the module docstring."""
-    v, P, ids = f.v, f.P, f.ids
+    v, ids = f.v, f.ids
     lo, hi = v[f.skin].min(0), v[f.skin].max(0)
     named = landmarks.named
     if "jaw_hinge" in named:
@@ -567,11 +567,3 @@ def _brows(f: _Face, surf: Surface, landmarks: FaceLandmarks, mesh: Mesh, config
         out["browInnerUp"] = w[:, None] * (f.tangent(up) if "brow" not in mesh.part_names else up[None]) * amount
     return out
 
-
-def rig_mesh(mesh: Mesh, rig: AutoRig, keep_existing: bool = False) -> Mesh:
-    """``mesh`` with the auto rig's morph targets (its own dropped unless ``keep_existing``)."""
-    from dataclasses import replace
-
-    morphs = dict(mesh.morph_targets) if keep_existing else {}
-    morphs.update(rig.morph_targets)
-    return replace(mesh, morph_targets=morphs)
