@@ -317,3 +317,23 @@ def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     gap = np.linalg.norm(gt[:, lm[8]] - gt[:, lm[10]], axis=-1)  # [T]
     assert gap[0] == pytest.approx(np.linalg.norm(mesh.vertices[lm[8]] - mesh.vertices[lm[10]]), rel=1e-4)
     assert gap.min() < 0.5 * gap[0]
+
+
+def test_cli_on_a_mesh_with_no_face_prints_one_error_line(tmp_path):
+    """`t2bs autorig ball.glb`: no labels, MediaPipe finds no face (or is not installed): one `error:` line, exit 2."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import trimesh
+
+    from t2bs.geometry.io import save_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    save_mesh(Mesh(np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)), tmp_path / "ball.glb")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    res = subprocess.run([sys.executable, "-m", "t2bs.cli", "autorig", str(tmp_path / "ball.glb"), "-o", str(tmp_path / "o.glb")],
+                         capture_output=True, text=True, env={**__import__("os").environ, "PYTHONPATH": src}, timeout=120)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: no face found on"), res.stderr
+    assert "--landmarks" in lines[0] and not (tmp_path / "o.glb").exists()

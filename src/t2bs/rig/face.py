@@ -40,7 +40,8 @@ MEDIAPIPE_NAMED = {"brow_right": 105, "brow_left": 334, "brow_inner_right": 107,
 UPPER_POINTS = (1, 2, 7, 8, 13, 14, 15)
 LOWER_POINTS = (4, 5, 10, 11, 17, 18, 19)
 HOW_TO = ("give them with --landmarks FILE: {\"vertex_ids\": [20 vertex ids in the 68-point order 36-47, 60-67]} "
-          "(the JSON `t2bs landmarks --show` writes; optional named ids: " + ", ".join(NAMED_POINTS) + ")")
+          "(the JSON `t2bs landmarks --show` writes; optional named ids: " + ", ".join(NAMED_POINTS) + "), "
+          "or click them on the character in `t2bs view DIR` (folder Landmarks)")
 
 
 @dataclass
