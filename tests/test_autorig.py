@@ -337,3 +337,18 @@ def test_cli_on_a_mesh_with_no_face_prints_one_error_line(tmp_path):
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: no face found on"), res.stderr
     assert "--landmarks" in lines[0] and not (tmp_path / "o.glb").exists()
+
+
+def test_report_says_the_motion_came_from_the_auto_rig(tmp_path):
+    from t2bs.pipeline import write_report
+    from t2bs.project import Project
+
+    project = Project(tmp_path / "proj")
+    project.record_stage("videos", backend="procedural", motion_source="autorig",
+                         autorig={"shapes": ["jawOpen", "eyeBlinkLeft"], "landmarks": "mediapipe", "mouth": "lip seam: the lips part",
+                                  "missing": {"tongueOut": "no tongue part", "mouthClose": "no lips", "mouthRollLower": "no lips"}})
+    report = write_report(project, "a head", "quick", {"videos": 1.0})
+    text = project.path("report.md").read_text()
+    assert report["motion_source"] == "autorig"
+    assert "Motion source: the **auto rig**" in text and "2 ARKit shapes from mediapipe landmarks" in text
+    assert "- missing mouthClose, mouthRollLower: no lips" in text and "- missing tongueOut: no tongue part" in text

@@ -173,8 +173,11 @@ def _write_markdown(project: Project, report: dict) -> None:
     if report.get("motion_source") == "autorig" and report.get("autorig"):
         a = report["autorig"]
         lines += ["", f"Motion source: the **auto rig** (the mesh had no face rig): {len(a['shapes'])} ARKit shapes from "
-                  f"{a['landmarks']} landmarks in character/autorig.glb ({len(a['missing'])} missing, reasons in "
-                  f"character/autorig.json); mouth: {a.get('mouth')}."]
+                  f"{a['landmarks']} landmarks in character/autorig.glb; mouth: {a.get('mouth')}."]
+        why: dict[str, list[str]] = {}
+        for name, reason in (a.get("missing") or {}).items():
+            why.setdefault(reason, []).append(name)
+        lines += [f"- missing {', '.join(names)}: {reason}" for reason, names in why.items()]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
     lines += ["", "## Videos", "", "| video | p2p moving (static) | NC (static) | seconds | contact sheet |", "|---|---|---|---|---|"]
