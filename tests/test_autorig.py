@@ -352,3 +352,16 @@ def test_report_says_the_motion_came_from_the_auto_rig(tmp_path):
     assert report["motion_source"] == "autorig"
     assert "Motion source: the **auto rig**" in text and "2 ARKit shapes from mediapipe landmarks" in text
     assert "- missing mouthClose, mouthRollLower: no lips" in text and "- missing tongueOut: no tongue part" in text
+
+
+def test_named_jaw_hinge_and_chin_are_used(head):
+    mesh, lm, parts, *_ = head
+    v = mesh.vertices.astype(np.float64)
+    side = parts["head"][np.argmin(np.abs(v[parts["head"]] - [0.45, -0.05, 0.0]).sum(1))]  # a vertex by the ear
+    rig = autorig(mesh, FaceLandmarks(lm, "file", {"jaw_hinge": int(side)}, find_eyeballs(mesh)))
+    hinge = np.asarray(rig.info["hinge"])
+    assert hinge[1] == pytest.approx(v[side, 1], abs=1e-5) and hinge[2] == pytest.approx(v[side, 2], abs=1e-5)
+    d = rig.morph_targets["jawOpen"].astype(np.float64)
+    chin = lm[18]
+    r0, r1 = np.linalg.norm((v[chin] - hinge)[1:]), np.linalg.norm((v[chin] + d[chin] - hinge)[1:])
+    assert abs(r1 - r0) < 1e-4 * r0  # the lower lip turns about the user's hinge
