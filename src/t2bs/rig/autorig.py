@@ -441,6 +441,22 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     return w, hinge, info
 
 
+def _smooth_on(surf: Surface, idx: np.ndarray, w: np.ndarray, iterations: int = 8) -> np.ndarray:
+    """``w`` [N] with its values on vertices ``idx`` averaged over their mesh neighbours within ``idx``."""
+    nodes = np.unique(surf.node[idx])
+    sub = surf.graph[nodes][:, nodes]
+    sub = ((sub + sub.T) > 0).astype(np.float64)
+    deg = np.asarray(sub.sum(1)).ravel()
+    vals = np.zeros(len(nodes))
+    pos = np.searchsorted(nodes, surf.node[idx])
+    np.maximum.at(vals, pos, w[idx])
+    for _ in range(iterations):
+        vals = np.where(deg > 0, 0.5 * vals + 0.5 * (sub @ vals) / np.maximum(deg, 1), vals)
+    out = w.copy()
+    out[idx] = vals[pos]
+    return out
+
+
 def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: AutoRigConfig,
           attached: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line)."""
@@ -491,6 +507,9 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
     if attached is not None and len(attached[0]):  # parts on the lid (lashes) turn with it
         idx, nn = attached
         w_u[idx], w_l[idx], src_u[idx], src_l[idx] = w_u[nn], w_l[nn], src_u[nn], src_l[nn]
+        # Smoothed along the part itself, so a lash line spanning both lids bends at the corners
+        # instead of splitting where its nearest skin vertex changes lid.
+        w_u, w_l = _smooth_on(surf, idx, w_u), _smooth_on(surf, idx, w_l)
     th = elevation(v)
     # Each vertex turns as far as the margin point nearest to it must to reach the meeting line, so
     # the whole margin (not only its mean) closes on a lid of any shape.
