@@ -55,7 +55,7 @@ LOWER_LIP = {"left": 17, "mid": 18, "right": 19}
 
 @dataclass
 class AutoRigConfig:
-    jaw_open: float = 0.45  # lower-lip travel of a full jawOpen along its arc, in mouth widths
+    jaw_open: float = 0.8  # lower-lip travel of a full jawOpen along its arc, in mouth widths (ARKit 1 = fully open)
     lid_meet: float = 0.2  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid (human lower lids move little)
     smile: float = 0.22  # mouth-corner travel of a full smile, in mouth widths
     frown: float = 0.12  # mouth-corner travel of a full frown, in mouth widths
@@ -219,7 +219,7 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     info.update(jaw_info)
     lower_mid = P[LOWER_LIP["mid"]]
     radius = float(np.hypot(*(lower_mid - hinge)[1:]))
-    angle = float(np.clip(config.jaw_open * f.mw / max(radius, 1e-9), np.radians(6), np.radians(35)))
+    angle = float(np.clip(config.jaw_open * f.mw / max(radius, 1e-9), np.radians(8), np.radians(30)))  # a human jaw opens ~25-30 degrees
     info["jaw_angle_deg"] = round(float(np.degrees(angle)), 2)
     turned = rotate_about(v, hinge, np.array([1.0, 0, 0]), angle)
     shapes["jawOpen"] = w_jaw[:, None] * (turned - v)

@@ -12,7 +12,7 @@ import typer
 
 from t2bs.errors import UserError
 
-AUTORIG_VERSION = "t2bs-autorig-2"  # bump when the deformers change what a rig holds
+AUTORIG_VERSION = "t2bs-autorig-3"  # bump when the deformers change what a rig holds
 
 
 def rig_canonical(mesh, landmarks_file: Path | None = None, renderer=None, source_name: str = "mesh", config=None):

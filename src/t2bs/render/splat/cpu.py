@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import threading
 import warnings
 from pathlib import Path
@@ -32,8 +33,11 @@ _error: str | None = None
 
 def build_directory() -> Path:
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    # torch rebuilds when a listed source changes, not when a header does: the folder names them all.
-    digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)).hexdigest()[:10]
+    # torch rebuilds when a listed source changes, not when a header does: the folder names them all. It also names
+    # where the sources and torch live: ninja rebuilds when a source's path changes, so two checkouts or two torch
+    # installations on one machine would otherwise rebuild the one folder in turn.
+    where = f"{_HERE.resolve()}|{Path(torch.__file__).resolve().parent}".encode()
+    digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS) + where).hexdigest()[:10]
     return base / "t2bs" / "torch_extensions" / f"splat_cpu_torch{torch.__version__.replace('+', '_')}_{digest}"
 
 
@@ -49,6 +53,9 @@ def load_kernel():
 
                 path = build_directory()
                 path.mkdir(parents=True, exist_ok=True)
+                if not any(path.glob("t2bs_splat_cpu*.so")):
+                    print(f"t2bs: compiling the C++ splatting kernel once (1-3 min on 2 cores) into {path}",
+                          file=sys.stderr, flush=True)
                 _module = load(name="t2bs_splat_cpu", sources=[str(p) for p in _SOURCES], extra_cflags=_CFLAGS,
                                extra_ldflags=["-pthread"], build_directory=str(path), verbose=False)
             except Exception as exc:  # compiler missing, headers missing, link error, ...
