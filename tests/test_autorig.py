@@ -256,6 +256,14 @@ def test_picked_landmarks_by_ray_and_saved_for_the_auto_rig(tmp_path, head):
     path = picks.save(tmp_path / "landmarks.json")
     ids, named = read_landmarks_file(path, mesh.num_vertices)
     assert ids.tolist() == lm.tolist() and named == {"chin": int(parts["head"][0])}
+    # In a project: the picks saved before, else the points the auto rig found, to correct.
+    from t2bs.project import write_json
+
+    write_json(tmp_path / "proj" / "character" / "autorig.json", {"landmarks": {"vertex_ids": lm.tolist(), "named": {"chin": 3}}})
+    found = LandmarkPicks.for_project(tmp_path / "proj", mesh.num_vertices)
+    assert found.to_dict()["vertex_ids"] == lm.tolist() and found.ids["chin"] == 3
+    picks.save(tmp_path / "proj" / "landmarks" / "picked.json")
+    assert LandmarkPicks.for_project(tmp_path / "proj", mesh.num_vertices).ids["chin"] == int(parts["head"][0])
     empty = LandmarkPicks(mesh.num_vertices)
     empty.set("36", 1)
     with pytest.raises(UserError, match="not picked yet: 37"):
@@ -293,7 +301,7 @@ def test_a_collar_under_the_chin_does_not_follow_the_jaw():
 
 def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     """`t2bs videos` on a character without a face rig builds the auto rig (here from the user's picked
-    landmarks file) and animates it: the blinking grid's ground truth closes the lids; the manifest and
+    points, landmarks/picked.json) and animates it: the blinking grid's ground truth closes the lids; the manifest and
     the grid say the motion came from the auto rig."""
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, read_json, write_json
@@ -303,7 +311,7 @@ def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     mesh, lm, parts, *_ = head
     project = Project(tmp_path / "proj")
     save_mesh(mesh, project.mesh_path)
-    write_json(project.path("landmarks", "landmarks.json"), {"vertex_ids": lm.tolist()})
+    write_json(project.path("landmarks", "picked.json"), {"vertex_ids": lm.tolist(), "backend": "picked"})
     videos_command(project.root, prompts="blinking", samples=1, defects="clean", frames=8, size=48, views=3, seed=0,
                    shading="unlit", backend="procedural", checkpoint=None, steps=1, import_grid=None, expression=None, sample=0)
     stage = read_json(project.path("manifest.json"))["stages"]["videos"]
@@ -317,6 +325,14 @@ def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     gap = np.linalg.norm(gt[:, lm[8]] - gt[:, lm[10]], axis=-1)  # [T]
     assert gap[0] == pytest.approx(np.linalg.norm(mesh.vertices[lm[8]] - mesh.vertices[lm[10]]), rel=1e-4)
     assert gap.min() < 0.5 * gap[0]
+    # The landmarks stage then writes the auto rig's points; a re-run keeps the rig and the videos.
+    from t2bs.retarget.commands import compute_landmarks
+    from t2bs.rig.commands import project_autorig
+
+    assert compute_landmarks(project.root, "auto").backend == "autorig"
+    done = project.path("character", "autorig", "done.json").read_text()
+    project_autorig(project, mesh)
+    assert project.path("character", "autorig", "done.json").read_text() == done
 
 
 def test_cli_on_a_mesh_with_no_face_prints_one_error_line(tmp_path):

@@ -62,13 +62,17 @@ def autorig_command(
 def project_autorig(project, mesh, renderer=None):
     """The character with an auto rig, for a project whose mesh has none the animator can play.
 
-    Cached in DIR/character/autorig.glb (+ autorig.json); a user's DIR/landmarks/landmarks.json
-    (`t2bs landmarks --override`) is used when present. Returns (rigged mesh, summary for the manifest).
+    Cached in DIR/character/autorig.glb (+ autorig.json); the user's points in DIR/landmarks/picked.json
+    (the viewer's picker, or any --landmarks JSON copied there) are used when present. Returns (rigged
+    mesh, summary for the manifest).
     """
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.project import content_key, is_done, mark_done, read_json, write_json
+    from t2bs.rig.pick import PICKED
 
-    lm_file = project.path("landmarks", "landmarks.json")
+    # The user's points (the viewer's picker writes them there); landmarks/landmarks.json is the
+    # landmarks stage's output, which rewrites it from the auto rig after the reconstruction.
+    lm_file = project.path("landmarks", PICKED)
     lm_file = lm_file if lm_file.exists() else None
     folder = project.path("character")
     rig_path, info_path = folder / "autorig.glb", folder / "autorig.json"

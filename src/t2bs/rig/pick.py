@@ -14,6 +14,8 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.rig.face import NAMED_POINTS
 
+PICKED = "picked.json"  # DIR/landmarks/<this>: the user's points for the project's auto rig
+
 # The 20 points in the 68-point order (36-47, 60-67): (slot, what to click). Right / left are the
 # character's own (right eye on -X, image left in the frontal view).
 SLOTS: list[tuple[str, str]] = [
@@ -76,6 +78,28 @@ class LandmarkPicks:
             except UserError:
                 return picks
             picks.ids = {SLOTS[i][0]: int(x) for i, x in enumerate(ids)} | dict(named)
+        return picks
+
+    @classmethod
+    def for_project(cls, root: Path, num_vertices: int) -> "LandmarkPicks":
+        """The project's picks (landmarks/picked.json), else the points its auto rig found
+        (character/autorig.json), to correct rather than click all 20."""
+        import json
+
+        picked = Path(root) / "landmarks" / PICKED
+        if picked.is_file():
+            return cls.from_file(picked, num_vertices)
+        picks = cls(num_vertices)
+        found = Path(root) / "character" / "autorig.json"
+        if found.is_file():
+            try:
+                lm = json.loads(found.read_text())["landmarks"]
+                for (slot, _), vid in zip(SLOTS, lm["vertex_ids"]):
+                    picks.set(slot, int(vid))
+                for slot, vid in (lm.get("named") or {}).items():
+                    picks.set(slot, int(vid))
+            except (ValueError, KeyError, TypeError, UserError):
+                return cls(num_vertices)
         return picks
 
     def set(self, slot: str, vertex: int) -> None:

@@ -563,11 +563,11 @@ class ViewerApp:
 
     def _build_landmark_picker(self) -> None:
         """Landmarks for the auto rig (issue 34): pick a point, click it on the character, save."""
-        from t2bs.rig.pick import SLOTS, LandmarkPicks
+        from t2bs.rig.pick import PICKED, SLOTS, LandmarkPicks
 
         gui = self.server.gui
-        self.landmarks_path = self.root / "landmarks" / "landmarks.json"
-        self.picks = LandmarkPicks.from_file(self.landmarks_path, self.mesh.num_vertices)
+        self.landmarks_path = self.root / "landmarks" / PICKED
+        self.picks = LandmarkPicks.for_project(self.root, self.mesh.num_vertices)
         with gui.add_folder("Landmarks (auto rig)", expand_by_default=False):
             gui.add_markdown("Click the 20 points (68-point numbers; right / left are the character's own) for "
                              "`t2bs autorig --landmarks` and the video stage's auto rig.")
@@ -616,7 +616,7 @@ class ViewerApp:
         return vid
 
     def save_landmarks(self) -> Path:
-        """Write the picks to DIR/landmarks/landmarks.json (UserError naming the points still missing)."""
+        """Write the picks to DIR/landmarks/picked.json (UserError naming the points still missing)."""
         return self.picks.save(self.landmarks_path)
 
     def _add_timeline(self, kind: str, title: str, folder: str, labels: tuple[str, str, str], names: list[str],
