@@ -50,6 +50,10 @@ app.command("create")(create_command)
 from t2bs.blendshapes.export_cli import export_command  # noqa: E402
 
 app.command("export")(export_command)
+
+from t2bs.rig.commands import autorig_command  # noqa: E402
+
+app.command("autorig")(autorig_command)
 # -- bench subcommands are registered below (bench_app.command("NAME")(fn)), one line each --
 from t2bs.eval.bench_raster import bench_raster_command  # noqa: E402
 

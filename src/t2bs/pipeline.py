@@ -202,6 +202,8 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
         "videos": videos,
         "blendshapes": blend,
         "versions": manifest.get("versions", {}),
+        "motion_source": stages.get("videos", {}).get("motion_source", "rig"),
+        "autorig": stages.get("videos", {}).get("autorig"),
     }
     write_json(project.path("report.json"), report)
     _write_markdown(project, report)
@@ -228,6 +230,14 @@ def _write_markdown(project: Project, report: dict) -> None:
     ckpts = report.get("checkpoints", {})
     lines += [f"- {stage}: {backend}" + (f" (checkpoints: {', '.join(ckpts[stage])})" if stage in ckpts else "")
               for stage, backend in report["backends"].items()]
+    if report.get("motion_source") == "autorig" and report.get("autorig"):
+        a = report["autorig"]
+        lines += ["", f"Motion source: the **auto rig** (the mesh had no face rig): {len(a['shapes'])} ARKit shapes from "
+                  f"{a['landmarks']} landmarks in character/autorig.glb; mouth: {a.get('mouth')}."]
+        why: dict[str, list[str]] = {}
+        for name, reason in (a.get("missing") or {}).items():
+            why.setdefault(reason, []).append(name)
+        lines += [f"- missing {', '.join(names)}: {reason}" for reason, names in why.items()]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
     lines += ["", "## Videos", "",

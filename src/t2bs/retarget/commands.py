@@ -54,6 +54,11 @@ def compute_landmarks(project_dir: Path, backend: str = "auto", override: Option
         except json.JSONDecodeError as exc:
             raise UserError(f"override file {override} is not valid JSON ({exc.msg}, line {exc.lineno})") from None
         lm = landmarks_from_override(data, mesh)
+    elif backend == "auto" and project.path("character", "autorig.json").exists():
+        # The motion came from the auto rig (issue 34): its 20 landmarks are this character's, in the
+        # same 68-point order, found before any shape existed.
+        lm = landmarks_from_override({"vertex_ids": read_json(project.path("character", "autorig.json"))["landmarks"]["vertex_ids"]}, mesh)
+        lm.backend = "autorig"
     else:
         lm, regions = detect_landmarks(mesh, backend, model=model)
     out = project.path("landmarks")

@@ -8,7 +8,8 @@ whatever morph targets the mesh has:
 
 - procedural characters (CONTRACTS.md rig): jaw_open, blink_left/right, smile, frown, brow_up,
   ear_wave, tongue_out, cheek_puff, look_left/right/up/down;
-- ARKit blendshapes (facecap.glb): jawOpen, eyeBlink_L/R, mouthSmile_L/R, browInnerUp, ...;
+- ARKit blendshapes (facecap.glb): jawOpen, eyeBlink_L/R, mouthSmile_L/R, browInnerUp, ...; also
+  Apple's spelling eyeBlinkLeft / mouthSmileRight (what ``t2bs autorig`` writes, issue 34);
 - VRM 0.x / 1.0 presets (vipe_hero_head.glb): a e i o u, blink_l/r, joy, angry, sorrow, fun,
   look*; aa ih ou ee oh, blinkLeft/Right, happy, sad, relaxed, surprised;
 - the turtle's names (turtle.glb): mouthOpen, eyeLeftClose/eyeRightClose, smileLeft/Right,
@@ -26,6 +27,7 @@ render of the static mesh (I[0, 0]).
 
 from __future__ import annotations
 
+import re
 import zlib
 from dataclasses import dataclass, field
 
@@ -555,10 +557,29 @@ def resolve_expression(expression: str) -> list[str]:
     return hits
 
 
+def driver_key(name: str) -> str:
+    """A morph name's key in MORPH_DRIVERS: lower case, and Apple's ARKit spelling (eyeBlinkLeft,
+    mouthSmileRight: what ``t2bs autorig`` writes) read as the _L / _R one (eyeBlink_L)."""
+    key = name.lower()
+    if key in MORPH_DRIVERS:
+        return key
+    m = re.fullmatch(r"(.+?)(left|right)", key)
+    if m and f"{m.group(1)}_{m.group(2)[0]}" in MORPH_DRIVERS:
+        return f"{m.group(1)}_{m.group(2)[0]}"
+    return key
+
+
+def usable_rig(mesh: Mesh) -> bool:
+    """Whether the animator can play a face on ``mesh``: a morph target drives the jaw, a blink or a smile
+    (a mesh without one only gets the rigid head motion, so the video stage auto-rigs it)."""
+    controls = {c for drv in morph_drivers(mesh).values() for c, _ in drv}
+    return bool(controls & {"jaw_open", "blink_left", "blink_right", "smile_left", "smile_right"})
+
+
 def morph_drivers(mesh: Mesh) -> dict[str, list[tuple[str, float]]]:
     """The mesh's morph names -> [(control, gain)], with left/right pairs checked on the geometry."""
     # Morphs with all-zero offsets (facecap's tongueOut, VRM "unbound" slots) cannot show anything.
-    lower = {n.lower(): n for n, d in mesh.morph_targets.items() if np.abs(d).max() > 0}
+    lower = {driver_key(n): n for n, d in mesh.morph_targets.items() if np.abs(d).max() > 0}
     drivers = {lower[k]: list(v) for k, v in MORPH_DRIVERS.items() if k in lower}
     for left, right in SIDE_PAIRS:
         if left in lower and right in lower:

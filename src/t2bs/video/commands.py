@@ -119,10 +119,20 @@ def videos_command(
     if backend == "cogvideox":
         _cogvideox(project, jobs, checkpoint, cfg, steps, seed)
         return
-    from t2bs.video.animator import resolve_expression
+    from t2bs.video.animator import resolve_expression, usable_rig
 
     for e in expressions:
         resolve_expression(e)  # unknown words fail before any rendering
+    motion, rig_key, autorig_info = "rig", [], None
+    if not usable_rig(mesh):
+        # A static mesh (scan, sculpt, text-to-3D output) has nothing to play but head turns: build a
+        # face rig on it (issue 34) and animate that, so the videos show the expressions.
+        from t2bs.rig.commands import project_autorig
+
+        mesh, autorig_info = project_autorig(project, mesh)
+        motion, rig_key = "autorig", [project.path("character", "autorig.glb")]
+        print(f"videos: the character has no face rig; auto rig: {len(autorig_info['shapes'])} ARKit shapes "
+              f"({autorig_info['landmarks']['source']} landmarks) -> {project.path('character', 'autorig.glb')}")
     from t2bs.render.mesh_renderer import MeshRenderer
 
     t0 = time.perf_counter()
@@ -131,7 +141,7 @@ def videos_command(
     with MeshRenderer() as renderer, tqdm(total=renders, desc="videos", unit="frame") as bar:
         for job in jobs:
             vdir = project.path("videos", job.video_id)
-            key = content_key(project.mesh_path, GRID_VERSION_KEY, job.prompt, job.sample, asdict(cfg), asdict(defect_cfg), seed)
+            key = content_key(project.mesh_path, *rig_key, GRID_VERSION_KEY, job.prompt, job.sample, asdict(cfg), asdict(defect_cfg), seed)
             if _done(vdir, key):
                 skipped.append(job.video_id)
                 bar.update(cfg.views * cfg.frames)
@@ -139,13 +149,17 @@ def videos_command(
             bar.set_postfix_str(job.video_id)
             t1 = time.perf_counter()
             grid = make_grid(mesh, job.expression, job.sample, seed, cfg, defect_cfg, renderer, prompt=job.prompt, progress=bar)
-            grid.meta.update({"video_id": job.video_id, "character_prompt": character, "defect_preset": defects})
+            grid.meta.update({"video_id": job.video_id, "character_prompt": character, "defect_preset": defects,
+                              "motion_source": motion})
             write_grid_folder(grid, vdir, key, seconds=round(time.perf_counter() - t1, 3), backend="procedural")
             made.append(job.video_id)
     seconds = time.perf_counter() - t0
     project.record_stage("videos", backend="procedural", config={**asdict(cfg), "defects": defects, "seed": seed, "samples": samples},
                          defects=asdict(defect_cfg), expressions=expressions,
-                         videos=[j.video_id for j in jobs], made=len(made), skipped=len(skipped), seconds=round(seconds, 3))
+                         videos=[j.video_id for j in jobs], made=len(made), skipped=len(skipped), seconds=round(seconds, 3),
+                         motion_source=motion, **({"autorig": {"shapes": autorig_info["shapes"], "landmarks": autorig_info["landmarks"]["source"],
+                                                               "missing": autorig_info["missing"], "mouth": autorig_info.get("mouth")}}
+                                                  if autorig_info else {}))
     print(f"videos: {len(made)} made, {len(skipped)} up to date, in {project.path('videos')} ({seconds:.1f} s)")
 
 

@@ -567,6 +567,7 @@ class ViewerApp:
                     continue
                 with gui.add_folder(titles[group], expand_by_default=group != "pca" or len(members) <= 12):
                     self._add_sliders(members, strip="rig:" if group == "rig" else "")
+        self._build_landmark_picker()
 
     def _add_sliders(self, members: list, strip: str = "") -> None:
         """One slider per (index, Shape) in the current GUI folder."""
@@ -576,6 +577,64 @@ class ViewerApp:
             h = self.server.gui.add_slider(label, min=s.lo, max=s.hi, step=step, initial_value=0.0)
             h.on_update(self._slider_callback(i))
             self._sliders[i] = h
+
+    def _build_landmark_picker(self) -> None:
+        """Landmarks for the auto rig (issue 34): pick a point, click it on the character, save."""
+        from t2bs.rig.pick import PICKED, SLOTS, LandmarkPicks
+
+        gui = self.server.gui
+        self.landmarks_path = self.root / "landmarks" / PICKED
+        self.picks = LandmarkPicks.for_project(self.root, self.mesh.num_vertices)
+        with gui.add_folder("Landmarks (auto rig)", expand_by_default=False):
+            gui.add_markdown("Click the 20 points (68-point numbers; right / left are the character's own) for "
+                             "`t2bs autorig --landmarks` and the video stage's auto rig.")
+            labels = [f"{k}: {d}" for k, d in SLOTS]
+            self._pick_slot = gui.add_dropdown("Point", labels, initial_value=labels[SLOTS.index(
+                next(x for x in SLOTS if x[0] == self.picks.next_slot()))])
+            self._pick_on = gui.add_checkbox("Pick by clicking", initial_value=False)
+            save = gui.add_button("Save landmarks")
+            self._pick_note = gui.add_markdown(self._picks_note())
+
+        @self._pick_on.on_update
+        def _(_event) -> None:
+            if self._pick_on.value:
+                self.server.scene.on_click()(lambda ev: self.pick_ray(ev.ray_origin, ev.ray_direction))
+            else:
+                self.server.scene.remove_click_callback("all")
+
+        @save.on_click
+        def _(_event) -> None:
+            try:
+                self._pick_note.content = f"Saved {self.save_landmarks()}"
+            except UserError as e:
+                self._pick_note.content = f"Not saved: {e}"
+
+    def _picks_note(self) -> str:
+        missing = self.picks.missing()
+        return f"{20 - len(missing)} of 20 picked" + (f"; missing {', '.join(missing)}" if missing else "")
+
+    def pick_ray(self, origin, direction) -> int | None:
+        """Set the chosen landmark to the vertex a click ray (world frame) hits; moves to the next point."""
+        from t2bs.rig.pick import SLOTS, ray_vertex
+
+        with self._lock:
+            verts = self._shown_vertices.copy()
+        vid = ray_vertex(verts, self.faces, origin, direction)
+        if vid is None:
+            return None
+        slot = self._pick_slot.value.split(":")[0]
+        self.picks.set(slot, vid)
+        nxt = self.picks.next_slot(slot)
+        self._pick_slot.value = next(f"{k}: {d}" for k, d in SLOTS if k == nxt)
+        self._pick_note.content = self._picks_note()
+        picked = np.asarray(list(self.picks.ids.values()), np.int64)
+        self.server.scene.add_point_cloud("/landmarks", points=verts[picked].astype(np.float32),
+                                          colors=(255, 220, 0), point_size=0.012)
+        return vid
+
+    def save_landmarks(self) -> Path:
+        """Write the picks to DIR/landmarks/picked.json (UserError naming the points still missing)."""
+        return self.picks.save(self.landmarks_path)
 
     def _add_timeline(self, kind: str, title: str, folder: str, labels: tuple[str, str, str], names: list[str],
                       empty: str, image: bool = False) -> Timeline:

@@ -1,0 +1,383 @@
+"""Automatic face rig (issue 34) on a small synthetic head with eye openings, eyeballs, a lip seam and teeth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from t2bs.errors import UserError
+from t2bs.geometry.mesh import Mesh
+from t2bs.retarget.landmarks import EYE_ANGLES, MOUTH_ANGLES
+from t2bs.rig.autorig import autorig
+from t2bs.rig.face import FaceLandmarks, find_eyeballs, find_face, read_landmarks_file
+
+EYE_X, EYE_Y, EYE_A, EYE_B = 0.17, 0.10, 0.07, 0.035  # eye opening centre (+-x) and half axes
+MOUTH_Y, MOUTH_HALF = -0.18, 0.15  # mouth line height and half width
+BALL_R = 0.075
+TEETH_Y = {"upper": -0.160, "lower": -0.200}
+
+
+def _boundary(faces: np.ndarray) -> np.ndarray:
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    return np.unique(u[c == 1])
+
+
+def synthetic_head(collar: bool = False):
+    """A sphere head (radius 0.5, facing +Z) with two eye openings, eyeballs behind them, a slit mouth
+    (the lip seam) and an upper and a lower row of teeth (boxes behind the lips).
+    Returns (mesh, landmark ids [20], parts {name: vertex ids}, eyeball centres {side: [3]})."""
+    import trimesh
+
+    head = trimesh.creation.uv_sphere(radius=0.5, count=[64, 64])
+    c = head.triangles_center
+    keep = ~((np.abs(c[:, 0]) < MOUTH_HALF) & (np.abs(c[:, 1] - MOUTH_Y) < 0.012) & (c[:, 2] > 0))
+    for sx in (1, -1):
+        keep &= ~((((c[:, 0] - sx * EYE_X) / EYE_A) ** 2 + ((c[:, 1] - EYE_Y) / EYE_B) ** 2 < 1) & (c[:, 2] > 0))
+    head.update_faces(keep)
+    head.remove_unreferenced_vertices()
+    parts = [("head", head)]
+    centres = {}
+    z_surf = np.sqrt(0.25 - EYE_X ** 2 - EYE_Y ** 2)
+    for side, sx in (("left", 1), ("right", -1)):
+        ball = trimesh.creation.icosphere(subdivisions=2, radius=BALL_R)
+        centres[side] = np.array([sx * EYE_X, EYE_Y, z_surf - BALL_R + 0.004])
+        ball.apply_translation(centres[side])
+        parts.append((f"eye_{side}", ball))
+    if collar:  # a separate part under the chin (clothes): not in the mouth
+        box = trimesh.creation.box(extents=(0.6, 0.08, 0.3))
+        box.apply_translation((0, -0.56, 0.1))
+        parts.append(("collar", box))
+    for name, y in TEETH_Y.items():
+        box = trimesh.creation.box(extents=(0.2, 0.025, 0.03))
+        box.apply_translation((0, y, np.sqrt(0.25 - y ** 2) - 0.05))
+        parts.append((f"teeth_{name}", box))
+    verts, faces, ids = [], [], {}
+    n = 0
+    for name, m in parts:
+        verts.append(np.asarray(m.vertices))
+        faces.append(np.asarray(m.faces) + n)
+        ids[name] = np.arange(n, n + len(m.vertices))
+        n += len(m.vertices)
+    mesh = Mesh(np.concatenate(verts).astype(np.float32), np.concatenate(faces).astype(np.int32))
+    v = mesh.vertices
+    rim = np.intersect1d(_boundary(np.asarray(head.faces)), ids["head"])
+    lm = []
+    for sx in (-1, 1):  # 36-41 the right eye (-X), then 42-47 the left eye (+X)
+        for a in np.radians(EYE_ANGLES):
+            target = np.array([sx * EYE_X + EYE_A * np.cos(a), EYE_Y + EYE_B * np.sin(a)])
+            cand = rim[np.abs(v[rim, 0] - sx * EYE_X) < 0.1]
+            lm.append(int(cand[np.argmin(np.linalg.norm(v[cand, :2] - target, axis=1))]))
+    for a in MOUTH_ANGLES:
+        r = np.radians(a)
+        target = np.array([MOUTH_HALF * np.cos(r), MOUTH_Y + 0.01 * np.sin(r)])
+        cand = rim[np.abs(v[rim, 1] - MOUTH_Y) < 0.05]
+        if 0 < a < 180:
+            cand = cand[v[cand, 1] > MOUTH_Y]
+        elif a < 0:
+            cand = cand[v[cand, 1] < MOUTH_Y]
+        lm.append(int(cand[np.argmin(np.linalg.norm(v[cand, :2] - target, axis=1))]))
+    return mesh, np.asarray(lm), ids, centres
+
+
+@pytest.fixture(scope="module")
+def head():
+    mesh, lm, parts, centres = synthetic_head()
+    face = FaceLandmarks(lm, "file", {}, find_eyeballs(mesh))
+    return mesh, lm, parts, centres, face, autorig(mesh, face)
+
+
+def test_eyeballs_found_as_mirrored_spheres(head):
+    mesh, _, parts, _, face, _ = head
+    assert set(face.eyeballs) == {"left", "right"}
+    assert np.array_equal(np.sort(face.eyeballs["left"]), parts["eye_left"])  # the +X ball is the character's left
+    assert np.array_equal(np.sort(face.eyeballs["right"]), parts["eye_right"])
+
+
+def test_blink_closes_without_entering_the_eyeball(head):
+    mesh, lm, parts, centres, _, rig = head
+    v = mesh.vertices.astype(np.float64)
+    for side, sl in (("left", slice(6, 12)), ("right", slice(0, 6))):
+        d = rig.morph_targets[f"eyeBlink{side.capitalize()}"]
+        closed = v + d
+        eye = lm[sl]
+        # Seen from the front, the opening between the upper and lower lid points closes.
+        before = v[eye[[1, 2]], 1] - v[eye[[5, 4]], 1]
+        after = closed[eye[[1, 2]], 1] - closed[eye[[5, 4]], 1]
+        assert np.all(np.abs(after) < 0.15 * before), (before, after)
+        skin = parts["head"]
+        dist = np.linalg.norm(closed[skin] - centres[side], axis=1)
+        assert dist.min() >= BALL_R * 0.999  # no lid vertex inside the ball
+        assert np.abs(d[parts[f"eye_{side}"]]).max() == 0  # the eyeball itself stays
+        other = parts["eye_left" if side == "right" else "eye_right"]
+        assert np.abs(d[other]).max() == 0
+
+
+def test_jaw_turns_about_the_hinge_and_lips_part(head):
+    mesh, lm, parts, _, _, rig = head
+    v = mesh.vertices.astype(np.float64)
+    d = rig.morph_targets["jawOpen"].astype(np.float64)
+    hinge = np.asarray(rig.info["hinge"])
+    head_ids = parts["head"]
+    front = head_ids[(np.abs(v[head_ids, 0]) < 0.02) & (v[head_ids, 2] > 0.3)]
+    chin = front[np.argmin(np.abs(v[front, 1] - (MOUTH_Y - 0.12)))]
+    r0 = np.linalg.norm((v[chin] - hinge)[1:])
+    r1 = np.linalg.norm((v[chin] + d[chin] - hinge)[1:])
+    assert np.linalg.norm(d[chin]) > 0.02  # the chin moves ...
+    assert abs(r1 - r0) < 1e-4 * r0  # ... on a circle about the hinge axis (along X)
+    assert abs(d[chin, 0]) < 1e-6 and d[chin, 1] < 0
+    lower_lip, upper_lip = lm[18], lm[14]
+    assert np.linalg.norm(d[lower_lip]) > 0.02 and np.linalg.norm(d[upper_lip]) < 1e-6
+    assert rig.info["mouth_sealed"] is False
+
+
+def test_lower_teeth_follow_the_jaw_upper_teeth_stay(head):
+    mesh, _, parts, _, _, rig = head
+    from t2bs.rig.autorig import rotate_about
+
+    v = mesh.vertices.astype(np.float64)
+    d = rig.morph_targets["jawOpen"].astype(np.float64)
+    low = parts["teeth_lower"]
+    turned = rotate_about(v[low], np.asarray(rig.info["hinge"]), np.array([1.0, 0, 0]), np.radians(rig.info["jaw_angle_deg"]))
+    np.testing.assert_allclose(d[low], turned - v[low], atol=2e-4)  # rigidly with the jaw
+    assert np.abs(d[parts["teeth_upper"]]).max() == 0
+
+
+def test_left_is_the_characters_left(head):
+    mesh, _, parts, _, _, rig = head
+    v = mesh.vertices
+    lm = head[1]
+    for name, own, mirror in (("eyeBlinkLeft", 7, 1), ("mouthSmileLeft", 16, 12), ("browOuterUpLeft", None, None),
+                              ("mouthFrownLeft", 16, 12), ("browDownLeft", None, None)):
+        for sign, n, a, b in ((1, name, own, mirror), (-1, name.replace("Left", "Right"), mirror, own)):
+            mag = np.linalg.norm(rig.morph_targets[n], axis=1)
+            assert sign * (mag * v[:, 0]).sum() / mag.sum() > 0.05, n  # its motion sits on its own side
+            if a is not None:  # its own landmark moves, the mirrored one stays
+                assert mag[lm[a]] > 0.5 * mag.max() and mag[lm[b]] < 0.02 * mag.max(), n
+    look = rig.morph_targets["eyeLookOutLeft"][parts["eye_left"]]
+    front = parts["eye_left"][np.argmax(v[parts["eye_left"], 2])]
+    assert look[list(parts["eye_left"]).index(front), 0] > 0  # the left eye looks out to +X
+    assert np.abs(rig.morph_targets["eyeLookOutLeft"][parts["head"]]).max() == 0
+    assert rig.morph_targets["mouthSmileLeft"][:, 1].sum() > 0  # the corner goes up
+    assert "tongueOut" in rig.missing and "mouthClose" in rig.missing
+
+
+def test_mesh_without_a_face_gets_one_error_line():
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    mesh = Mesh(np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32))
+    with pytest.raises(UserError) as e:
+        find_face(mesh, use_mediapipe=False, source_name="ball.glb")
+    msg = str(e.value)
+    assert "\n" not in msg and "no face found on ball.glb" in msg and "--landmarks" in msg and "36-47" in msg
+
+
+def test_landmarks_file_formats(tmp_path, head):
+    mesh, lm, *_ = head
+    p = tmp_path / "lm.json"
+    # What `t2bs landmarks` writes: extra keys are ignored; named points are optional.
+    p.write_text(json.dumps({"version": 1, "backend": "override", "vertex_ids": lm.tolist(), "chin": 5, "named": {"brow_left": 7}}))
+    ids, named = read_landmarks_file(p, mesh.num_vertices)
+    assert ids.tolist() == lm.tolist() and named == {"chin": 5, "brow_left": 7}
+    for bad, words in (({"vertex_ids": [1, 2]}, "20 integers"), ({"vertex_ids": list(range(19)) + [10 ** 7]}, "must be in"),
+                       ({"vertex_ids": lm.tolist(), "nose": 3}, None), ({"points": []}, "needs \"vertex_ids\"")):
+        p.write_text(json.dumps(bad))
+        if words is None:  # unknown top-level keys are other tools' data, not an error
+            read_landmarks_file(p, mesh.num_vertices)
+            continue
+        with pytest.raises(UserError, match=words):
+            read_landmarks_file(p, mesh.num_vertices)
+    swapped = np.concatenate([lm[6:12], lm[0:6], lm[12:]])
+    with pytest.raises(UserError, match="left eye"):
+        autorig(mesh, FaceLandmarks(swapped, "file"))
+
+
+def test_autorig_command_keeps_vertex_order_and_animator_plays_it(tmp_path, head):
+    from typer.testing import CliRunner
+
+    from t2bs.cli import app
+    from t2bs.geometry.io import load_mesh, save_mesh
+    from t2bs.video.animator import animate, morph_drivers, usable_rig
+
+    mesh, lm, *_ = head
+    src, out, lmf = tmp_path / "head.glb", tmp_path / "rig.glb", tmp_path / "lm.json"
+    save_mesh(mesh, src)
+    lmf.write_text(json.dumps({"vertex_ids": lm.tolist()}))
+    res = CliRunner().invoke(app, ["autorig", str(src), "-o", str(out), "--landmarks", str(lmf)])
+    assert res.exit_code == 0, res.output
+    before, after = load_mesh(src), load_mesh(out)
+    np.testing.assert_array_equal(before.vertices, after.vertices)  # order and count kept
+    assert {"jawOpen", "eyeBlinkLeft", "mouthSmileRight", "browInnerUp"} <= set(after.morph_targets)
+    assert not usable_rig(before) and usable_rig(after)
+    drivers = morph_drivers(after)
+    assert drivers["eyeBlinkLeft"] == [("blink_left", 1.0)] and drivers["mouthSmileRight"] == [("smile_right", 1.0)]
+    anim = animate(after, "blinking", seed=0)
+    assert "eyeBlinkLeft" in anim.names and anim.weights[:, anim.names.index("eyeBlinkLeft")].max() > 0.5
+    summary = json.loads(out.with_suffix(".json").read_text())
+    assert summary["landmarks"]["source"] == "file" and "tongueOut" in summary["missing"]
+
+
+def test_landmarks_stage_reuses_the_auto_rigs_landmarks(tmp_path, head):
+    """A static character animated through the auto rig has no blink / mouth shapes of its own for the
+    motion landmark backend: `t2bs landmarks` (auto) takes the auto rig's 20 points."""
+    from t2bs.geometry.io import save_mesh
+    from t2bs.project import Project, write_json
+    from t2bs.retarget.commands import compute_landmarks
+
+    mesh, lm, *_ = head
+    project = Project(tmp_path / "proj")
+    save_mesh(mesh, project.mesh_path)
+    write_json(project.path("character", "autorig.json"), {"landmarks": {"vertex_ids": lm.tolist(), "source": "file"}})
+    got = compute_landmarks(project.root, "auto")
+    assert got.backend == "autorig" and got.vertex_ids.tolist() == lm.tolist()
+
+
+def test_picked_landmarks_by_ray_and_saved_for_the_auto_rig(tmp_path, head):
+    from t2bs.rig.face import read_landmarks_file
+    from t2bs.rig.pick import SLOTS, LandmarkPicks, ray_vertex
+
+    mesh, lm, parts, *_ = head
+    v = mesh.vertices.astype(np.float64)
+    # A ray from the front camera's side through a landmark vertex hits it (or a vertex of its triangle).
+    for k in (0, 7, 14, 18):
+        target = v[lm[k]]
+        origin = target + np.array([0.0, 0.0, 2.0])
+        vid = ray_vertex(v, mesh.faces, origin, target - origin)
+        assert np.linalg.norm(v[vid] - target) < 0.03
+    assert ray_vertex(v, mesh.faces, [5.0, 5.0, 5.0], [1.0, 0.0, 0.0]) is None  # pointing away: a miss
+    picks = LandmarkPicks(mesh.num_vertices)
+    for (slot, _), vid in zip(SLOTS, lm):
+        assert picks.next_slot() == slot  # the picker walks the 20 in order
+        picks.set(slot, int(vid))
+    picks.set("chin", int(parts["head"][0]))
+    path = picks.save(tmp_path / "landmarks.json")
+    ids, named = read_landmarks_file(path, mesh.num_vertices)
+    assert ids.tolist() == lm.tolist() and named == {"chin": int(parts["head"][0])}
+    # In a project: the picks saved before, else the points the auto rig found, to correct.
+    from t2bs.project import write_json
+
+    write_json(tmp_path / "proj" / "character" / "autorig.json", {"landmarks": {"vertex_ids": lm.tolist(), "named": {"chin": 3}}})
+    found = LandmarkPicks.for_project(tmp_path / "proj", mesh.num_vertices)
+    assert found.to_dict()["vertex_ids"] == lm.tolist() and found.ids["chin"] == 3
+    picks.save(tmp_path / "proj" / "landmarks" / "picked.json")
+    assert LandmarkPicks.for_project(tmp_path / "proj", mesh.num_vertices).ids["chin"] == int(parts["head"][0])
+    empty = LandmarkPicks(mesh.num_vertices)
+    empty.set("36", 1)
+    with pytest.raises(UserError, match="not picked yet: 37"):
+        empty.save(tmp_path / "x.json")
+
+
+def test_viewer_click_picks_a_landmark(tmp_path):
+    pytest.importorskip("viser")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from viewer_fixture import build_fixture_project
+
+    from t2bs.viewer.app import ViewerApp
+
+    root = tmp_path / "proj"
+    build_fixture_project(root, with_model=False)
+    with ViewerApp(root, port=0) as app:
+        v = app.neutral.astype(np.float64)
+        front = int(np.argmax(v[:, 2]))
+        vid = app.pick_ray(v[front] + [0, 0, 3.0], [0, 0, -1.0])  # a click straight at the front-most point
+        assert np.linalg.norm(v[vid] - v[front]) < 0.05 and app.picks.ids["36"] == vid
+        assert app._pick_slot.value.startswith("37:")  # the picker moved on to the next point
+        with pytest.raises(UserError, match="not picked yet"):
+            app.save_landmarks()
+
+
+def test_a_collar_under_the_chin_does_not_follow_the_jaw():
+    mesh, lm, parts, _ = synthetic_head(collar=True)
+    rig = autorig(mesh, FaceLandmarks(lm, "file", {}, find_eyeballs(mesh)))
+    assert np.abs(rig.morph_targets["jawOpen"][parts["collar"]]).max() == 0
+    assert np.abs(rig.morph_targets["jawOpen"][parts["teeth_lower"]]).max() > 0.01
+
+
+def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
+    """`t2bs videos` on a character without a face rig builds the auto rig (here from the user's picked
+    points, landmarks/picked.json) and animates it: the blinking grid's ground truth closes the lids; the manifest and
+    the grid say the motion came from the auto rig."""
+    from t2bs.geometry.io import save_mesh
+    from t2bs.project import Project, read_json, write_json
+    from t2bs.video.commands import videos_command
+    from t2bs.video.grid import load_grid
+
+    mesh, lm, parts, *_ = head
+    project = Project(tmp_path / "proj")
+    save_mesh(mesh, project.mesh_path)
+    write_json(project.path("landmarks", "picked.json"), {"vertex_ids": lm.tolist(), "backend": "picked"})
+    videos_command(project.root, prompts="blinking", samples=1, defects="clean", frames=8, size=48, views=3, seed=0,
+                   shading="unlit", backend="procedural", checkpoint=None, steps=1, import_grid=None, expression=None, sample=0)
+    stage = read_json(project.path("manifest.json"))["stages"]["videos"]
+    assert stage["motion_source"] == "autorig" and stage["autorig"]["landmarks"] == "file"
+    assert "eyeBlinkLeft" in stage["autorig"]["shapes"]
+    grid = load_grid(project.path("videos", "blinking-s0"))
+    assert grid.meta["motion_source"] == "autorig"
+    gt = grid.gt_vertices  # [T, N, 3]: head motion + the auto rig's blink
+    # The left eye closes in some frame: the distance between its upper and lower lid points (which a
+    # rigid head motion keeps) shrinks to a fraction of the open eye's.
+    gap = np.linalg.norm(gt[:, lm[8]] - gt[:, lm[10]], axis=-1)  # [T]
+    assert gap[0] == pytest.approx(np.linalg.norm(mesh.vertices[lm[8]] - mesh.vertices[lm[10]]), rel=1e-4)
+    assert gap.min() < 0.5 * gap[0]
+    # The landmarks stage then writes the auto rig's points; a re-run keeps the rig and the videos.
+    from t2bs.retarget.commands import compute_landmarks
+    from t2bs.rig.commands import project_autorig
+
+    assert compute_landmarks(project.root, "auto").backend == "autorig"
+    done = project.path("character", "autorig", "done.json").read_text()
+    project_autorig(project, mesh)
+    assert project.path("character", "autorig", "done.json").read_text() == done
+
+
+def test_cli_on_a_mesh_with_no_face_prints_one_error_line(tmp_path):
+    """`t2bs autorig ball.glb`: no labels, MediaPipe finds no face (or is not installed): one `error:` line, exit 2."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import trimesh
+
+    from t2bs.geometry.io import save_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    save_mesh(Mesh(np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)), tmp_path / "ball.glb")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    res = subprocess.run([sys.executable, "-m", "t2bs.cli", "autorig", str(tmp_path / "ball.glb"), "-o", str(tmp_path / "o.glb")],
+                         capture_output=True, text=True, env={**__import__("os").environ, "PYTHONPATH": src}, timeout=120)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: no face found on"), res.stderr
+    assert "--landmarks" in lines[0] and not (tmp_path / "o.glb").exists()
+
+
+def test_report_says_the_motion_came_from_the_auto_rig(tmp_path):
+    from t2bs.pipeline import write_report
+    from t2bs.project import Project
+
+    project = Project(tmp_path / "proj")
+    project.record_stage("videos", backend="procedural", motion_source="autorig",
+                         autorig={"shapes": ["jawOpen", "eyeBlinkLeft"], "landmarks": "mediapipe", "mouth": "lip seam: the lips part",
+                                  "missing": {"tongueOut": "no tongue part", "mouthClose": "no lips", "mouthRollLower": "no lips"}})
+    report = write_report(project, "a head", "quick", {"videos": 1.0})
+    text = project.path("report.md").read_text()
+    assert report["motion_source"] == "autorig"
+    assert "Motion source: the **auto rig**" in text and "2 ARKit shapes from mediapipe landmarks" in text
+    assert "- missing mouthClose, mouthRollLower: no lips" in text and "- missing tongueOut: no tongue part" in text
+
+
+def test_named_jaw_hinge_and_chin_are_used(head):
+    mesh, lm, parts, *_ = head
+    v = mesh.vertices.astype(np.float64)
+    side = parts["head"][np.argmin(np.abs(v[parts["head"]] - [0.45, -0.05, 0.0]).sum(1))]  # a vertex by the ear
+    rig = autorig(mesh, FaceLandmarks(lm, "file", {"jaw_hinge": int(side)}, find_eyeballs(mesh)))
+    hinge = np.asarray(rig.info["hinge"])
+    assert hinge[1] == pytest.approx(v[side, 1], abs=1e-5) and hinge[2] == pytest.approx(v[side, 2], abs=1e-5)
+    d = rig.morph_targets["jawOpen"].astype(np.float64)
+    chin = lm[18]
+    r0, r1 = np.linalg.norm((v[chin] - hinge)[1:]), np.linalg.norm((v[chin] + d[chin] - hinge)[1:])
+    assert abs(r1 - r0) < 1e-4 * r0  # the lower lip turns about the user's hinge
