@@ -838,7 +838,7 @@ def test_import_grid_takes_a_flat_folder_with_the_default_views(project, tmp_pat
     for i in range(15 * 2):  # view-major: view 0's two frames first
         Image.fromarray(np.full((16, 16, 3), i * 8, np.uint8)).save(flat / f"img{i:03d}.png")
     rc, out, err = run_cli(["videos", root, "--import-grid", flat, "--expression", "smiling", "--sample", 1,
-                            "--views", 15], capsys)
+                            "--views", 15, "--shading", "unlit"], capsys)
     assert rc == 0, err
     grid = load_grid(root / "videos" / "smiling-s1")
     assert grid.frames.shape == (15, 2, 16, 16, 3) and grid.frames[1, 0, 0, 0, 0] == 16  # view 1, frame 0 = image 2

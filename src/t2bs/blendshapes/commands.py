@@ -315,17 +315,23 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
     it is unavailable). The fit minimises L_geo + 0.1 L_rgb + prior (fit.py).
     Errors are measured against the held-out captures themselves (the paper's protocol); with
     ``ground_truth`` (video_id -> true [T, N, 3], e.g. for VCDGS captures) ``p2p_vs_gt`` also
-    measures the fit against the true geometry.
+    measures the fit against the true geometry. The model holds expressions (build_model takes each frame's head
+    motion out), so the held-out frames are fitted and measured as seen from the head too: each frame's robust
+    rigid motion is taken out of the capture (and of the truth) first.
     """
     from t2bs.blendshapes.fit import FitConfig, fit_frames, splat_vertices, visible_vertices
     from t2bs.blendshapes.model import build_model
     from t2bs.geometry.camera import frontal_camera
+    from t2bs.geometry.rigid import nonrigid_displacements
+
+    def expression(frames: np.ndarray) -> np.ndarray:  # [T, N, 3] without each frame's head motion
+        return (character.vertices.astype(np.float64) + nonrigid_displacements(character.vertices, frames)[0])
 
     train, test = _held_out_split(captures, expressions, held_out, seed)
     t0 = time.time()
     model = build_model(character.vertices, {v: captures[v] for v in train}, components=components)
     build_s = time.time() - t0
-    target = np.concatenate([captures[v] for v in test])  # [T, N, 3]
+    target = np.concatenate([expression(captures[v]) for v in test])  # [T, N, 3]
     camera = frontal_camera(image_size)
     colors = character.vertex_rgb()
     t0 = time.time()
@@ -363,7 +369,7 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
         pix = ((ia - ib) ** 2).mean((1, 2, 3)).numpy().tolist()
     extra = {}
     if ground_truth is not None and all(v in ground_truth for v in test):
-        gt = np.concatenate([ground_truth[v] for v in test])
+        gt = np.concatenate([expression(ground_truth[v]) for v in test])
         extra["p2p_vs_gt"] = float((np.linalg.norm(fitted.astype(np.float64) - gt, axis=-1).mean(1) / diag).mean())
         extra["p2p_capture_vs_gt"] = float((np.linalg.norm(target - gt, axis=-1).mean(1) / diag).mean())
     return {
