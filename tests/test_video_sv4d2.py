@@ -249,7 +249,12 @@ def test_create_runs_the_chain_and_reports_backends_and_checkpoints(tmp_path, ti
     monkeypatch.setattr(rc, "reconstruct_command", reconstruct)
     monkeypatch.setattr(bc, "blendshapes_command", blendshapes)
     monkeypatch.setattr(lc, "landmarks_command", landmarks)
-    save_mesh(sphere_mesh(1), tmp_path / "sphere.glb")
+    sphere = sphere_mesh(1)
+    # A rig the offline animator can play (without one the video stage would auto-rig it, and a plain sphere has
+    # no face to find): its lower half drops as "jaw_open".
+    low = sphere.vertices[:, 1] < 0
+    sphere.morph_targets = {"jaw_open": np.where(low[:, None], [0.0, -0.05, 0.0], 0.0).astype(np.float32)}
+    save_mesh(sphere, tmp_path / "sphere.glb")
     shutil.copytree(tiny_ckpt, tmp_path / "ckpts" / "sv4d2")
     out = tmp_path / "out"
     kw = dict(prompt="a sphere", out=out, character_backend="file", mesh=tmp_path / "sphere.glb", prompts="blinking",

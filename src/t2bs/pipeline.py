@@ -74,7 +74,7 @@ def create_command(
     prompts: str = typer.Option(None, help="Expression prompts: all, a comma list, or a prompt-list file (default: the preset's)."),
     samples: int = typer.Option(0, help="Videos per prompt (0 = the preset's)."),
     seed: int = typer.Option(0, help="Seed for the character, animation, defects and training."),
-    character_backend: str = typer.Option("procedural", "--character-backend", help="procedural, diffusers, command or file."),
+    character_backend: str = typer.Option("procedural", "--character-backend", help="procedural, diffusers (Shap-E weights, MIT licence), command or file."),
     mesh: Path = typer.Option(None, help="Bring your own mesh (character backend 'file')."),
     workers: int = typer.Option(1, help="Reconstruction jobs in parallel on this machine (process pool)."),
     ray: str = typer.Option(None, "--ray", help="Run reconstruction jobs on Ray: 'auto', 'local' or host:port."),

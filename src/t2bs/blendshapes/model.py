@@ -93,12 +93,10 @@ class BlendshapeModel:
 
     def visible_components(self) -> np.ndarray:
         """[K'] indices of the components that move something visible: at the largest weight the captures gave it,
-        some vertex moves by >= VISIBLE_FRACTION of the diagonal (``visible``, computed here for older files)."""
+        some vertex moves by >= VISIBLE_FRACTION of the diagonal (``visible``, set by build_model). A model made
+        without the flags (a file older than them, one assembled by hand) shows every component."""
         if self.visible is None:
-            if not self.capture_weights:
-                return np.arange(self.num_components)
-            w = np.abs(np.concatenate([np.asarray(v) for v in self.capture_weights.values()])).max(0)  # [K]
-            return np.flatnonzero(_peak_offsets(self.basis, w) >= VISIBLE_FRACTION * _diagonal(self.neutral))
+            return np.arange(self.num_components)
         return np.flatnonzero(self.visible)
 
     def semantic_offsets(self) -> np.ndarray:

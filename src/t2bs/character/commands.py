@@ -36,7 +36,7 @@ GALLERY_PROMPTS = [
 def character_command(
     prompt: str = typer.Argument(..., help="Text describing the character, e.g. \"a cartoon fox with big ears\"."),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder to create or update."),
-    backend: str = typer.Option("procedural", help="procedural (offline), diffusers (Shap-E), command, file."),
+    backend: str = typer.Option("procedural", help="procedural (offline), diffusers (Shap-E: openai/shap-e weights, MIT licence), command, file."),
     seed: int = typer.Option(0, help="Random seed: same prompt + seed -> same character."),
     checkpoint: Path = typer.Option(None, help="diffusers: local Shap-E folder (default ~/.cache/t2bs/checkpoints/shap-e)."),
     command: str = typer.Option(None, help="command: template with {prompt} {out} {seed}; it writes a mesh into {out}. Run without a shell (docs/HOSTILE_INPUTS.md)."),

@@ -124,7 +124,7 @@ def reconstruct_command(
     face_gaussians: int = typer.Option(-1, help="Face Gaussians on at most this many of the largest triangles (0 = every triangle; -1 = the preset's: quick 10000, paper all)."),
     hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render in groups by where they lie across the opening that reveals them (recon/hidden_parts.py; where nothing opens, nothing moves; default: the preset's, on)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
-    lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder); default D-SSIM."),
+    lpips_weights: str = typer.Option("", help="Local LPIPS weights (file or folder; LPIPS lin layers BSD-2-Clause, AlexNet features BSD-3-Clause); default D-SSIM."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip preview.mp4."),
     seed: int = typer.Option(0, help="Seed of sampling and initialisation."),
     workers: int = typer.Option(1, help="Videos reconstructed in parallel on this machine (process pool)."),

@@ -40,8 +40,6 @@ class VCDGSConfig:
     min_part_control_points: int = 0  # each connected part gets at least this many control points of its own (0 =
     #   farthest-point sampling alone, the paper's): FPS spreads them by space and leaves a small part (a lip tube,
     #   the inside of a mouth, a tooth) one or none, so its vertices are skinned to another part's
-    skin_power: float = 1.0  # LBS weights fall off as 1 / distance^p (Mahalanobis, along the surface); higher p binds
-    #   a vertex more to its nearest control points (local motion: a lid, a lip corner), 1 = the inverse distance
     control_neighbours: int = 6  # control-point neighbours used by the rigidity regulariser
     anchor_first_frame: bool = True  # frame 0 is the static mesh (paper §3.1.2: the grid's first column is the
     #   fixed-time render of the static asset), so the shared deformation of t = 0 is held at the identity
@@ -55,8 +53,6 @@ class VCDGSConfig:
     pos_freqs: int = 6  # Fourier frequencies of control-point / Gaussian positions
     time_freqs: int = 5  # Fourier frequencies of normalised time
     view_freqs: int = 3  # Fourier frequencies of the normalised view index
-    control_point_table: bool = False  # a free motion per control point and frame (DCT coefficients) added to the
-    #   DeformMLP's shared motion (deform.ControlPointTable): local motions of a few control points get their own step
     # --- optimisation ---
     iterations: int = 800  # total steps (global warm-up included)
     time_budget_s: float = 260.0  # wall-clock cap of one reconstruction (static fit included; 0 = none): when the
@@ -71,7 +67,6 @@ class VCDGSConfig:
     lr_deform: float = 2e-3  # Adam lr of DeformMLP / per-Gaussian MLP (decays x lr_final_ratio)
     lr_global: float = 5e-3  # Adam lr of the global SE(3) tables
     lr_refine: float = 1e-3  # Adam lr of RefineMLP
-    lr_table: float = 5e-3  # Adam lr of the control-point table (control_point_table; decays like the others)
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
     # --- loss (eq. 2: Huber + perceptual) ---
     huber_delta: float = 0.1  # Huber transition on RGB differences in 0..1

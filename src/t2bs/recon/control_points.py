@@ -98,7 +98,7 @@ def _surface_distances(vertices: np.ndarray, faces: np.ndarray | None, sources: 
 
 def build_control_points(vertices: np.ndarray, faces: np.ndarray | None = None, k: int = 400, knn: int = 10,
                          cp_neighbours: int = 6, geodesic: bool = True, seed: int = 0,
-                         min_per_part: int = 0, power: float = 1.0) -> ControlPoints:
+                         min_per_part: int = 0) -> ControlPoints:
     """Farthest-point control points on ``vertices`` [N, 3] and fixed Mahalanobis LBS weights. ``min_per_part`` > 0
     (needs ``faces``) adds control points to the parts with fewer (``top_up_parts``), so there may be more than k."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -127,7 +127,7 @@ def build_control_points(vertices: np.ndarray, faces: np.ndarray | None = None, 
     # The straight-line Mahalanobis distance knows nothing of the mesh; scale it by how much
     # longer the path along the surface is, so control points across a gap weigh less.
     ratio = dist[nearest, np.arange(n)[:, None]] / np.maximum(np.linalg.norm(diff, axis=-1), 1e-12)
-    w = 1.0 / (maha * np.maximum(ratio, 1.0) + 1e-6) ** power
+    w = 1.0 / (maha * np.maximum(ratio, 1.0) + 1e-6)
     w /= w.sum(1, keepdims=True)
     m = min(cp_neighbours, kk - 1)
     cp_nb = np.argsort(dist[:, idx], axis=1)[:, 1:m + 1] if m > 0 else np.zeros((kk, 0), np.int64)

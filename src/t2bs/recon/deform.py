@@ -114,29 +114,6 @@ def dct_basis(frames: int) -> torch.Tensor:
     return basis * torch.where(k == 0, 1.0, math.sqrt(2.0)) / math.sqrt(max(frames, 1))
 
 
-class ControlPointTable(nn.Module):
-    """A free motion per control point and frame (rotation vector + translation, as the DeformMLP's shared part),
-    as coefficients on the DCT basis over frames, added to the DeformMLP's shared output.
-
-    Why: the MLP shares its weights over every control point, so Adam normalises one step over all of them; the
-    consistent but small gradient of a few control points (a lid's, a lip corner's) is a small part of that and
-    moves slowly against the regularisers and the noise of the others. A table gives each control point its own
-    normalised step. The rigidity, temporal and local regularisers apply to the sum as before."""
-
-    def __init__(self, frames: int, points: int, anchor_first_frame: bool = True):
-        super().__init__()
-        self.anchor = anchor_first_frame
-        self.register_buffer("basis", dct_basis(frames))
-        self.coeffs = nn.Parameter(torch.zeros(frames, points, 6))  # [T coefficients, K, rotvec 3 + translation 3]
-
-    def forward(self, t_idx: torch.Tensor) -> torch.Tensor:
-        """t_idx [B] -> [B, K, 6] (frame 0 held at zero when anchored)."""
-        rows = self.basis[t_idx]  # [B, T]
-        if self.anchor:
-            rows = rows - self.basis[:1]
-        return torch.einsum("bt,tkc->bkc", rows, self.coeffs)
-
-
 class GlobalSE3(nn.Module):
     """Global rigid motion per (v, t): a shared part per t plus a view residual per (v, t).
 
@@ -223,9 +200,6 @@ class VCDGSModel(nn.Module):
             self.global_se3.residual_static = self.deform.residual_static
         self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.refine_pos_freqs, cfg.time_freqs,
                                 cfg.view_freqs) if cfg.use_refine else None
-        # Per-control-point motion beside the DeformMLP (LBS only: without it the points are the Gaussians).
-        self.table = ControlPointTable(frames, len(self.cp), cfg.anchor_first_frame) \
-            if getattr(cfg, "control_point_table", False) and self.use_lbs else None
         # Fourier features of the fixed points, computed once (positions never change).
         self.register_buffer("pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.pos_freqs), persistent=False)
         self.register_buffer("pe_means", fourier(self.means, cfg.refine_pos_freqs), persistent=False)
@@ -243,10 +217,7 @@ class VCDGSModel(nn.Module):
     def control_transforms(self, v_idx: torch.Tensor, t_idx: torch.Tensor, use_view: bool = True):
         """Per control point (or per Gaussian for no_lbs): (shared [B, P, 6], residual [B, P, 6])."""
         on = self.view_on(v_idx) if use_view else torch.zeros(len(v_idx), device=v_idx.device)
-        shared, res = self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), on)
-        if self.table is not None:
-            shared = shared + self.table(t_idx) * self.deform.scale
-        return shared, res
+        return self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), on)
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, refine: bool = True, use_view: bool = True) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]

@@ -188,7 +188,7 @@ def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=No
             data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
             data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
     cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
-                               seed=cfg.seed, min_per_part=cfg.min_part_control_points, power=cfg.skin_power)
+                               seed=cfg.seed, min_per_part=cfg.min_part_control_points)
     model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
                        data.views, data.frames, data.canonical_view, cfg, gs.faces, gs.face_colors, gs.face_log_scale)
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
@@ -368,8 +368,6 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         groups["global"] = (list(model.global_se3.parameters()), cfg.lr_global)
     if model.refine is not None:
         groups["refine"] = (list(model.refine.parameters()), cfg.lr_refine)
-    if model.table is not None:
-        groups["table"] = (list(model.table.parameters()), cfg.lr_table)
     opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
     warm = cfg.global_iters if model.global_se3 is not None else 0
     warm = min(warm, cfg.iterations - 1) if cfg.iterations > 1 else 0

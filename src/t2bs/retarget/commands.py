@@ -73,7 +73,7 @@ def compute_landmarks(project_dir: Path, backend: str = "auto", override: Option
 def landmarks_command(
     project_dir: Path = typer.Argument(..., help="project folder (with character/mesh.glb)"),
     show: bool = typer.Option(False, "--show", help="also write landmarks/overlay.png"),
-    backend: str = typer.Option("auto", "--backend", help="auto | parts | motion | grounding-sam"),
+    backend: str = typer.Option("auto", "--backend", help="auto | parts | motion | grounding-sam (local Grounding-DINO + SAM checkpoints through transformers; both Apache-2.0)"),
     override: Optional[Path] = typer.Option(None, "--override", help="JSON with 20 vertex_ids or points2d"),
 ) -> None:
     """Find the character's 20 retargeting landmarks (6 per eye, 8 mouth) on its frontal render."""

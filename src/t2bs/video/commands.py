@@ -75,7 +75,7 @@ def videos_command(
     seed: int = typer.Option(0, help="Seed of animation and defects."),
     shading: str = typer.Option(None, help="unlit (ambient = 1, the paper's protocol; procedural default) or lambert. "
                                 "--import-grid: how the render the 4D model started from was lit (required)."),
-    backend: str = typer.Option("procedural", help="procedural (offline, with ground truth), cogvideox (fixed view only) "
+    backend: str = typer.Option("procedural", help="procedural (offline, with ground truth), cogvideox (fixed view only; THUDM/CogVideoX-5b-I2V weights under the CogVideoX LICENSE, commercial use needs registration) "
                                 "or sv4d2 (the V x T grid from the fixed-view video; see below)."),
     checkpoint: Path = typer.Option(None, help="cogvideox: CogVideoX-5b-I2V folder (diffusers layout). sv4d2: folder holding "
                                     "sv4d2.safetensors from stabilityai/sv4d2.0 (one file with UNet, CLIP image encoder "
