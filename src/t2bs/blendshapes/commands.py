@@ -169,7 +169,7 @@ def _arkit_shapes(project, model, character, folder: Path):
         print(f"blendshapes: no ARKit shapes ({exc})", file=sys.stderr)
         return None
     write_json(path, shapes.to_dict())
-    print(f"blendshapes: {summary(shapes)} (why each: {path})")
+    print(f"blendshapes: {summary(shapes)} (why each: {project.path('blendshapes', 'arkit.json')})")
     if shapes.names:
         from t2bs.project import write_image
         from t2bs.retarget.arkit import contact_sheet
