@@ -24,20 +24,18 @@ import typer  # noqa: E402
 from t2bs.errors import UserError, run_command  # noqa: E402
 
 
-def peak_frames(rest: np.ndarray, frames: np.ndarray, count: int) -> list[int]:
-    """The ``count`` frames of ``frames`` [T, N, 3] with the largest mean non-rigid motion from ``rest``, in time order."""
-    from t2bs.geometry.rigid import nonrigid_displacements
-
-    disp = np.linalg.norm(nonrigid_displacements(rest, frames)[0], axis=-1).mean(1)  # [T]
+def peak_frames(displacements: np.ndarray, count: int) -> list[int]:
+    """The ``count`` frames of non-rigid ``displacements`` [T, N, 3] with the largest mean motion, in time order."""
+    disp = np.linalg.norm(displacements, axis=-1).mean(1)  # [T]
     return sorted(int(t) for t in np.argsort(disp)[::-1][:count])
 
 
-def _crop_box(rest: np.ndarray, frames: np.ndarray, camera, size: int, margin: float = 0.5) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) pixels around the vertices that move non-rigidly (> 0.5 % of the diagonal), a square."""
-    from t2bs.geometry.rigid import nonrigid_displacements
+def _crop_box(rest: np.ndarray, displacements: np.ndarray, camera, size: int, margin: float = 0.5) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) pixels around the vertices whose non-rigid motion ``displacements`` [T, N, 3] exceeds 0.5 % of
+    the diagonal, a square."""
+    from t2bs.geometry.mesh import bbox_diagonal
 
-    disp = np.linalg.norm(nonrigid_displacements(rest, frames)[0], axis=-1).max(0)
-    moving = disp > 0.005 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    moving = np.linalg.norm(displacements, axis=-1).max(0) > 0.005 * bbox_diagonal(rest)
     if not moving.any():
         return 0, 0, size, size
     uv, _ = camera.project(rest[moving])
@@ -53,6 +51,7 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     from PIL import Image
 
     from t2bs.eval.metrics import expression_metrics
+    from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.project import Project, atomic_path
     from t2bs.recon.gaussians import camera_tensors, render
     from t2bs.recon.vcdgs import load_trained_model, resize_stack
@@ -66,12 +65,14 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     verts = np.load(out_dir / "vertices.npy")
     model, cfg = load_trained_model(out_dir / "state.pt")
     gt = grid.gt_vertices
-    frames = peak_frames(mesh.vertices, gt if gt is not None else verts, peaks)
+    # The expression (each frame's head motion taken out) of the truth where known, else of the reconstruction.
+    disp = nonrigid_displacements(mesh.vertices, gt if gt is not None else verts)[0]  # [T, N, 3]
+    frames = peak_frames(disp, peaks)
     c = grid.canonical_view
     cam = grid.cameras[c].resized(size, size)
     shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
     shading = shading if shading in ("unlit", "lambert") else "lambert"
-    box = _crop_box(mesh.vertices, gt if gt is not None else verts, cam, size) if crop else (0, 0, size, size)
+    box = _crop_box(mesh.vertices, disp, cam, size) if crop else (0, 0, size, size)
     inputs = resize_stack(grid.frames[c], (size, size)).numpy()  # [T, size, size, 3]
     vm, ks = camera_tensors([cam])
     rows = []

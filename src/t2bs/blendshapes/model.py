@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from t2bs.errors import UserError
+from t2bs.geometry.mesh import bbox_diagonal
 
 MODEL_VERSION = 2
 # A component is visible when, at its observed extreme, some vertex moves by this fraction of the bounding-box
@@ -179,7 +180,9 @@ def build_model(
     extreme = weights[np.abs(weights).argmax(0), np.arange(k)]  # [K]
     flip = np.where(extreme < 0, -1.0, 1.0)
     vt, weights = vt * flip[:, None], weights * flip[None]
-    visible = _peak_offsets(vt.reshape(k, n, 3), np.abs(weights).max(0)) >= VISIBLE_FRACTION * _diagonal(neutral)
+    # Visible: at its observed extreme, the component's largest vertex offset.
+    peak = np.linalg.norm(vt.reshape(k, n, 3), axis=-1).max(1) * np.abs(weights).max(0)  # [K]
+    visible = peak >= VISIBLE_FRACTION * bbox_diagonal(neutral)
     split = np.split(weights, np.cumsum(lengths)[:-1])
     return BlendshapeModel(
         neutral=neutral,
@@ -194,16 +197,6 @@ def build_model(
         visible=visible,
         head_tracks=head_tracks,
     )
-
-
-def _diagonal(points: np.ndarray) -> float:
-    p = np.asarray(points, np.float64)
-    return float(np.linalg.norm(p.max(0) - p.min(0)))
-
-
-def _peak_offsets(basis: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """[K] the largest vertex offset of each component ``basis`` [K, N, 3] at weight ``weights`` [K]."""
-    return np.linalg.norm(np.asarray(basis, np.float64), axis=-1).max(1) * np.asarray(weights, np.float64)
 
 
 def _svd_rows(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

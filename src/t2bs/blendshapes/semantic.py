@@ -15,6 +15,7 @@ import re
 import numpy as np
 
 from t2bs.blendshapes.model import BlendshapeModel
+from t2bs.geometry.mesh import bbox_diagonal
 
 # Prompt words -> shape name; first match wins (more specific phrases first). The paper's 20
 # prompts (appendix) are all covered; anything else keeps its own slug.
@@ -87,7 +88,7 @@ def semantic_shapes(model: BlendshapeModel, captures: dict[str, np.ndarray],
         if prompt not in best or disp[t] > best[prompt][0]:
             best[prompt] = (float(disp[t]), vid, t)
     names, weights, sources, used = [], [], [], set(model.names)
-    diag = float(np.linalg.norm(neutral.max(0) - neutral.min(0)))
+    diag = bbox_diagonal(neutral)
     for prompt in sorted(best):
         _, vid, t = best[prompt]
         if np.linalg.norm(np.asarray(captures[vid][t], np.float64) - neutral, axis=-1).max() < VISIBLE_FRACTION * diag:

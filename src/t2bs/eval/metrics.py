@@ -18,13 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from t2bs.geometry.mesh import vertex_normals
+from t2bs.geometry.mesh import bbox_diagonal, vertex_normals
 from t2bs.geometry.rigid import nonrigid_displacements
-
-
-def bbox_diagonal(vertices: np.ndarray) -> float:
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    return float(np.linalg.norm(v.max(0) - v.min(0)))
 
 
 def p2p(pred: np.ndarray, gt: np.ndarray, diagonal: float | None = None, mask: np.ndarray | None = None) -> float:

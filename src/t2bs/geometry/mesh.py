@@ -178,6 +178,12 @@ FACING_ROTATIONS = {
 }
 
 
+def bbox_diagonal(vertices: np.ndarray) -> float:
+    """Length of the axis-aligned bounding box's diagonal of points [..., 3] (float64)."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    return float(np.linalg.norm(v.max(0) - v.min(0)))
+
+
 def normalize(mesh: Mesh, facing: str = "+z", diagonal: float = CANONICAL_DIAGONAL) -> tuple[Mesh, dict]:
     """Move ``mesh`` to the canonical frame: rotate ``facing`` to +Z, centre, fix the diagonal.
 

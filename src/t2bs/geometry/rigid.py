@@ -32,7 +32,7 @@ def robust_rigid_motion(rest: np.ndarray, vertices: np.ndarray, iterations: int 
 
 def apply_motion(rotations: np.ndarray, translations: np.ndarray, points: np.ndarray) -> np.ndarray:
     """rotations [T, 3, 3], translations [T, 3], rest points [n, 3] -> [T, n, 3]."""
-    return np.einsum("tij,nj->tni", rotations, points) + translations[:, None]
+    return apply_rigid_frames(rotations, translations, np.broadcast_to(points, (len(rotations), *np.shape(points))))
 
 
 def apply_rigid_frames(rotations: np.ndarray, translations: np.ndarray, vertices: np.ndarray) -> np.ndarray:
