@@ -97,6 +97,8 @@ def case_config_overrides(preset_name: str, iterations: int, options: dict | Non
 def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], preset_name: str, size: int,
              frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
              options: dict | None = None) -> list[dict]:
+    import torch
+
     from t2bs.eval.metrics import expression_metrics, geometry_metrics, psnr, ssim
     from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
     from t2bs.recon.vcdgs import reconstruct_grid
@@ -115,6 +117,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
         for method in methods:
             t0 = time.time()
             pick = None  # hidden_parts.HiddenPick.summary() where config.hidden_pick ran
+            extra = {}  # steps run (and peak GPU memory) of a reconstruction
             if method == "static":
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
@@ -125,8 +128,14 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 over = {**case_config_overrides(preset_name, iterations, options), "method": method,
                         "holdout_views": tuple(holdout)}
                 cfg = preset(preset_name, **over)
+                cuda = torch.cuda.is_available() and cfg.device != "cpu"
+                if cuda:
+                    torch.cuda.reset_peak_memory_stats()
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
+                extra = {"steps": int(res.history.get("steps_run", 0))}
+                if cuda:
+                    extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2 ** 20)
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
             expr = expression_metrics(verts, gt, mesh.vertices)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
@@ -134,7 +143,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                          "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "p2p_seen": geo["p2p_seen"],
                          "seen_fraction": geo["seen_fraction"], "nc": geo["nc"], **expr,
                          "psnr": psnr(imgs, gt_imgs), "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
-                         "seconds": round(seconds, 2), **({"hidden_pick": pick} if pick else {})})
+                         "seconds": round(seconds, 2), **extra, **({"hidden_pick": pick} if pick else {})})
             print(_row_line(rows[-1]), flush=True)
     return rows
 

@@ -89,16 +89,18 @@ class DeformMLP(nn.Module):
         self.residual = CondMLP(d_p, d_t + d_v, 6, hidden // 2, max(depth - 1, 1)) if view_conditioned else None
         self.register_buffer("scale", torch.tensor([1.0, 1.0, 1.0] + [translation_scale] * 3))
 
-    def forward(self, pe: torch.Tensor, v: torch.Tensor, t: torch.Tensor, view_on: torch.Tensor):
+    def forward(self, pe: torch.Tensor, v: torch.Tensor, t: torch.Tensor, view_on: torch.Tensor | None):
         """pe [P, Dp] = fourier(points, pos_freqs); v, t [B] normalised to [-1, 1] and [0, 1];
-        view_on [B] 0/1 -> (shared [B, P, 6], residual [B, P, 6]) as (rotvec, translation)."""
+        view_on [B] 0/1, or None for no view residual -> (shared [B, P, 6], residual [B, P, 6]) as
+        (rotvec, translation). No branch on tensor values (a batch of canonical views still runs the
+        residual network, times 0): nothing waits for the device, and a compiled step is one graph."""
         te = fourier(t[:, None], self.time_freqs)  # [B, Dt]
         if self.anchor:
             both = self.shared(pe, torch.cat([te, fourier(t.new_zeros(1, 1), self.time_freqs)]))
             shared = (both[:-1] - both[-1:]) * self.scale
         else:
             shared = self.shared(pe, te) * self.scale
-        if self.residual is None or not bool(view_on.any()):
+        if self.residual is None or view_on is None:
             return shared, torch.zeros_like(shared)
         ve = fourier(v[:, None], self.view_freqs)
         if self.residual_static:  # a per-view distortion, the same at every frame
@@ -203,6 +205,7 @@ class VCDGSModel(nn.Module):
         # Fourier features of the fixed points, computed once (positions never change).
         self.register_buffer("pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.pos_freqs), persistent=False)
         self.register_buffer("pe_means", fourier(self.means, cfg.refine_pos_freqs), persistent=False)
+        self.radius = float(self.means.norm(dim=-1).mean())  # mean distance from the origin: rotation -> motion
 
     # -- encodings of the discrete view / time indices --
     def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:
@@ -216,8 +219,7 @@ class VCDGSModel(nn.Module):
 
     def control_transforms(self, v_idx: torch.Tensor, t_idx: torch.Tensor, use_view: bool = True):
         """Per control point (or per Gaussian for no_lbs): (shared [B, P, 6], residual [B, P, 6])."""
-        on = self.view_on(v_idx) if use_view else torch.zeros(len(v_idx), device=v_idx.device)
-        return self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), on)
+        return self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), self.view_on(v_idx) if use_view else None)
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, refine: bool = True, use_view: bool = True) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]

@@ -40,6 +40,36 @@ class StaticGaussians:
         return {"faces": f, "face_colors": opt(self.face_colors), "face_log_scale": opt(self.face_log_scale)}
 
 
+def frame_quat(u: torch.Tensor, w: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """Orthonormal right-handed axes u, w, n [..., 3] -> the XYZW unit quaternion of the rotation whose columns
+    they are (local x, y, z -> u, w, n). The same rotation as ``roma.rotmat_to_unitquat`` (possibly -q: the
+    same rotation), without stacking the matrix or gathering by argmax over a strided tensor, which made the
+    face Gaussians the costliest part of the deformation on CPU. Shepperd's method: of the four formulas
+    the one with the largest square root is used (chosen elementwise with ``where``); every square root's
+    argument is clamped, so the formulas not chosen give no NaN to the backward pass."""
+    m00, m10, m20 = u.unbind(-1)
+    m01, m11, m21 = w.unbind(-1)
+    m02, m12, m22 = n.unbind(-1)
+    trace = m00 + m11 + m22
+    cands = []
+    for k, d in enumerate((trace, m00, m11, m22)):
+        s = 2.0 * ((1.0 + 2.0 * d - trace) if k else (1.0 + trace)).clamp_min(1e-8).sqrt()  # 4 |component k|
+        if k == 0:
+            c = (m21 - m12, m02 - m20, m10 - m01, None)
+        elif k == 1:
+            c = (None, m01 + m10, m02 + m20, m21 - m12)
+        elif k == 2:
+            c = (m01 + m10, None, m12 + m21, m02 - m20)
+        else:
+            c = (m02 + m20, m12 + m21, None, m10 - m01)
+        big = 0.25 * s
+        comp = [big if x is None else x / s for x in c]  # XYZ then W for k = 0 (W is the big one)
+        cands.append(torch.stack(comp[:3] + [comp[3]], -1) if k else torch.stack([comp[0], comp[1], comp[2], big], -1))
+    best = torch.stack([trace, m00, m11, m22], -1).argmax(-1, keepdim=True)  # contiguous: cheap
+    q = torch.where(best == 0, cands[0], torch.where(best == 1, cands[1], torch.where(best == 2, cands[2], cands[3])))
+    return q / q.norm(dim=-1, keepdim=True)
+
+
 def face_gaussians(x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One Gaussian per triangle, built from the (deformed) vertex positions each time.
@@ -50,8 +80,6 @@ def face_gaussians(x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.T
     flatness x the smaller). They stretch and turn with their triangle, so a face that opens
     up (a mouth, an eyelid) stays covered: one Gaussian per vertex alone leaves it empty.
     """
-    import roma
-
     tri = x[:, faces]  # [B, F, 3, 3]
     c = tri.mean(2)
     e1 = tri[:, :, 1] - tri[:, :, 0]
@@ -60,13 +88,12 @@ def face_gaussians(x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.T
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     u = e1 / e1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w = torch.cross(n, u, dim=-1)
-    rot = torch.stack([u, w, n], dim=-1)  # [B, F, 3, 3] columns = local axes
     d = tri - c[:, :, None]  # [B, F, 3, 3]
     su = ((d * u[:, :, None]).sum(-1) ** 2).mean(-1).clamp_min(1e-12).sqrt()  # [B, F]
     sw = ((d * w[:, :, None]).sum(-1) ** 2).mean(-1).clamp_min(1e-12).sqrt()
     k = face_log_scale.exp()[None]
     scales = torch.stack([su * k, sw * k, flatness * torch.minimum(su, sw) * k], -1).clamp_min(1e-6)
-    return c, roma.rotmat_to_unitquat(rot), scales
+    return c, frame_quat(u, w, n), scales
 
 
 def camera_tensors(cameras: list[Camera], device="cpu") -> tuple[torch.Tensor, torch.Tensor]:

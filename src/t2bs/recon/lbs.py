@@ -21,6 +21,23 @@ def matvec(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (m * x[..., None, :]).sum(-1)
 
 
+def quat_right_matrix(q: torch.Tensor) -> torch.Tensor:
+    """q [..., 4] XYZW -> M [..., 4, 4] with p (x) q = M p for every quaternion p (roma.quat_product order).
+
+    With q fixed (a Gaussian's rest orientation) the product is one matrix-vector product: the
+    broadcast cross product of ``roma.quat_product`` costs ~10 operators per call."""
+    x, y, z, w = q.unbind(-1)
+    return torch.stack([torch.stack([w, z, -y, x], -1), torch.stack([-z, w, x, y], -1),
+                        torch.stack([y, -x, w, z], -1), torch.stack([-x, -y, -z, w], -1)], -2)
+
+
+def quat_left_matrix(p: torch.Tensor) -> torch.Tensor:
+    """p [..., 4] XYZW -> M [..., 4, 4] with p (x) q = M q for every quaternion q."""
+    x, y, z, w = p.unbind(-1)
+    return torch.stack([torch.stack([w, -z, y, x], -1), torch.stack([z, w, -x, y], -1),
+                        torch.stack([-y, x, w, z], -1), torch.stack([-x, -y, -z, w], -1)], -2)
+
+
 def blend_matrix(neighbours: torch.Tensor, weights: torch.Tensor, num_points: int) -> torch.Tensor:
     """neighbours/weights [N, knn] -> the same LBS weights as a sparse [N, K] matrix (COO, coalesced).
 
@@ -61,7 +78,7 @@ def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Te
     -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
     m, b, q = _blend(rotvec, trans, p, neighbours, weights, matrix)
     xt = matvec(m, x) + b
-    return xt, roma.quat_product(q, q_rest[None].expand_as(q))
+    return xt, matvec(quat_right_matrix(q_rest), q)
 
 
 def lbs_positions(x: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
@@ -79,8 +96,8 @@ def apply_rigid(x: torch.Tensor, q: torch.Tensor, rotvec: torch.Tensor, trans: t
     rot = roma.rotvec_to_rotmat(rotvec)  # [B, 3, 3]
     c = torch.zeros(3, dtype=x.dtype, device=x.device) if centre is None else centre
     x2 = torch.einsum("bij,bnj->bni", rot, x - c) + c + trans[:, None, :]
-    qg = roma.rotvec_to_unitquat(rotvec)[:, None, :].expand_as(q)
-    return x2, roma.quat_product(qg, q)
+    qg = quat_left_matrix(roma.rotvec_to_unitquat(rotvec))  # [B, 4, 4]
+    return x2, torch.bmm(q, qg.transpose(1, 2))
 
 
 def to_wxyz(q: torch.Tensor) -> torch.Tensor:

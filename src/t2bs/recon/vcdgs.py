@@ -266,7 +266,7 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
         if out["g_residual"] is not None:
             # A global rotation by theta moves points ~radius * theta: measure both parts as motion.
             g = out["g_residual"]
-            radius = float(model.means.norm(dim=-1).mean())
+            radius = model.radius
             reg = reg + ((g[:, 3:] ** 2).sum(-1).mean() + radius ** 2 * (g[:, :3] ** 2).sum(-1).mean()) / s2
         terms["view_residual"] = cfg.view_residual_weight * reg
     if out["offsets"] is not None and cfg.refine_weight > 0:
@@ -280,7 +280,7 @@ def _global_smoothness(model: VCDGSModel) -> torch.Tensor:
     (rotation x mean radius) in units of the control-point spacing."""
     g = model.global_se3.shared_table()  # [T, 6]
     acc = g[2:] - 2 * g[1:-1] + g[:-2]
-    radius = float(model.means.norm(dim=-1).mean())
+    radius = model.radius
     return ((acc[:, 3:] ** 2).sum(-1) + radius ** 2 * (acc[:, :3] ** 2).sum(-1)).mean() / model.spacing ** 2
 
 
@@ -347,6 +347,55 @@ class _Schedule:
         return min(max((p - self.warm_share) / max(1.0 - self.warm_share, 1e-9), 0.0), 1.0)
 
 
+@torch.compiler.disable
+def _render_uncompiled(*args):
+    """``render``, kept out of a compiled step (config.compile): the rasterizers are C++/CUDA kernels already, and
+    tracing into gsplat's Python recompiles at every new number of tile intersections."""
+    return render(*args)
+
+
+_IMAGE_TERMS = ("huber", "mask", "dssim", "lpips")  # image_loss's terms: the history's "image" loss
+
+
+def step_terms(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, v_idx: torch.Tensor, t_idx: torch.Tensor,
+               vm: torch.Tensor, ks: torch.Tensor, perceptual: PerceptualLoss, joint: bool, coarse: int = 0,
+               rest_seen: torch.Tensor | None = None) -> dict:
+    """The loss terms of one training step on the (view, time) pairs ``v_idx``, ``t_idx`` [B] (on the model's device).
+
+    vm [V, 4, 4], ks [V, 3, 3]: every view's camera (``camera_tensors``); ``joint``: the joint stage (RefineMLP and
+    the regularisers on); ``coarse``: the warm-up's downsampling exponent (``_coarse_level``); ``rest_seen`` [V, N, 3]:
+    the rest pose as each view sees it (``_rest_as_seen``), needed when the track term is on. One deformation and one
+    rasterization call cover the whole batch. -> {name: scalar tensor}; the loss is their sum."""
+    w, h = data.size
+    out = model(v_idx, t_idx, refine=joint)
+    r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h)
+    tgt, msk = debias_targets(data, v_idx, t_idx)
+    if coarse > 0:
+        r, tgt, msk = _downsample(r, tgt, msk, 2 ** coarse)
+        terms = image_loss(r, tgt, msk, perceptual, _COARSE_CFG(cfg))
+    else:
+        terms = image_loss(r, tgt, msk, perceptual, cfg)
+    if data.tracks is not None and cfg.track_weight > 0:
+        # Untextured tracks join in the joint stage only: their flow is filled in from edges and
+        # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
+        terms["track"] = cfg.track_weight * track_loss(out["means"], rest_seen[v_idx], vm[v_idx], ks[v_idx], data.tracks, v_idx,
+                                                       t_idx, cfg.track_delta * max(w, h),
+                                                       flat_weight=cfg.track_flat_weight if joint else 0.0)
+    if cfg.global_smooth_weight > 0 and model.global_se3 is not None and model.frames > 2:
+        terms["global_smooth"] = cfg.global_smooth_weight * _global_smoothness(model)
+    if joint:
+        terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
+    return terms
+
+
+def _train_only_global(model: VCDGSModel, only: bool) -> None:
+    """The warm-up optimises T_global alone: the other networks get no gradient then, so the backward
+    pass skips them (their optimisers do not step in the warm-up either way)."""
+    for name, mod in (("deform", model.deform), ("refine", model.refine)):
+        if mod is not None:
+            mod.requires_grad_(not only)
+
+
 def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
           checkpoint: Path | None = None, key: str = "", deadline: float | None = None) -> dict:
     """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``.
@@ -368,7 +417,8 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         groups["global"] = (list(model.global_se3.parameters()), cfg.lr_global)
     if model.refine is not None:
         groups["refine"] = (list(model.refine.parameters()), cfg.lr_refine)
-    opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
+    # fused: one kernel per optimiser step instead of ~10 operators per parameter tensor (CPU and CUDA).
+    opts = {k: torch.optim.Adam(p, lr=lr, fused=True) for k, (p, lr) in groups.items()}
     warm = cfg.global_iters if model.global_se3 is not None else 0
     warm = min(warm, cfg.iterations - 1) if cfg.iterations > 1 else 0
     history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
@@ -382,7 +432,12 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     model.train()
     clock = _Schedule(cfg.iterations, warm, deadline)
     joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
+    _train_only_global(model, not joint)
     history["steps_run"] = start
+    terms_fn = step_terms
+    if cfg.compile:
+        # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
+        terms_fn = torch.compile(step_terms, dynamic=False)
     rest_seen = None  # [V, N, 3] the rest pose as each view sees it, for the track term (refreshed)
     for step in bar:
         p = clock.progress(step)
@@ -391,6 +446,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
             break
         if not joint and clock.joint(p):
             joint = True
+            _train_only_global(model, False)
             history["joint_from"] = step
         frac = clock.joint_fraction(p)
         history["steps_run"] = step + 1
@@ -400,28 +456,11 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
                 g["lr"] = base * (cfg.lr_final_ratio ** frac if joint else 1.0)
         v_idx, t_idx = _sample(gen, data, cfg.batch_size, cfg.canonical_fraction)
         v_idx, t_idx = v_idx.to(dev), t_idx.to(dev)
-        out = model(v_idx, t_idx, refine=joint)
-        r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
-        tgt, msk = debias_targets(data, v_idx, t_idx)
+        if data.tracks is not None and cfg.track_weight > 0 and (rest_seen is None or step % cfg.track_refresh == 0):
+            rest_seen = _rest_as_seen(model, data.views)
         k = _coarse_level(step, warm, cfg.global_coarse, min(w, h)) if not joint else 0
-        if k > 0:
-            r, tgt, msk = _downsample(r, tgt, msk, 2 ** k)
-            terms = image_loss(r, tgt, msk, perceptual, _COARSE_CFG(cfg))
-        else:
-            terms = image_loss(r, tgt, msk, perceptual, cfg)
-        img = sum(terms.values()).detach()
-        if data.tracks is not None and cfg.track_weight > 0:
-            if rest_seen is None or step % cfg.track_refresh == 0:
-                rest_seen = _rest_as_seen(model, data.views)
-            # Untextured tracks join in the joint stage only: their flow is filled in from edges and
-            # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
-            terms["track"] = cfg.track_weight * track_loss(out["means"], rest_seen[v_idx], vm[v_idx], ks[v_idx], data.tracks, v_idx,
-                                                 t_idx, cfg.track_delta * max(w, h),
-                                                 flat_weight=cfg.track_flat_weight if joint else 0.0)
-        if cfg.global_smooth_weight > 0 and model.global_se3 is not None and model.frames > 2:
-            terms["global_smooth"] = cfg.global_smooth_weight * _global_smoothness(model)
-        if joint:
-            terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
+        terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, coarse=k, rest_seen=rest_seen)
+        img = sum(v for n, v in terms.items() if n in _IMAGE_TERMS).detach()
         loss = sum(terms.values())
         for o in opts.values():
             o.zero_grad(set_to_none=True)
@@ -446,6 +485,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
                 torch.save({"key": key, "step": step + 1, "model": model.state_dict(),
                             "opts": {k: o.state_dict() for k, o in opts.items()}, "gen": gen.get_state(),
                             "history": history}, tmp)
+    _train_only_global(model, False)
     model.eval()
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
     return history
