@@ -19,7 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-ASSET = Path(__file__).resolve().parents[1].parent / "shared" / "assets" / "facecap.glb"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+from t2bs.shared_assets import shared_asset  # noqa: E402
+
+ASSET = shared_asset("facecap.glb")
 
 
 def run(asset: Path = ASSET) -> dict:

@@ -31,8 +31,9 @@ import numpy as np  # noqa: E402
 import typer  # noqa: E402
 
 from t2bs.errors import run_command  # noqa: E402
+from t2bs.shared_assets import shared_assets_dir  # noqa: E402
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "assets"
+SHARED = shared_assets_dir()
 # Comparison -> (reference morph names, any of which is the rig's shape (summed when several are listed
 # under one tuple), auto-rig shapes summed). Targets of issue 34: cos >= 0.7 jaw / blinks, >= 0.5 smiles.
 COMPARISONS: dict[str, tuple[list, list[str]]] = {

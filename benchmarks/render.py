@@ -16,8 +16,9 @@ from pathlib import Path
 from t2bs.commands_render import canonical_character
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.render.mesh_renderer import MeshRenderer
+from t2bs.shared_assets import shared_asset
 
-DEFAULT_ASSET = Path(__file__).resolve().parents[2] / "shared" / "assets" / "facecap.glb"
+DEFAULT_ASSET = shared_asset("facecap.glb")
 
 
 def main() -> None:

@@ -15,6 +15,8 @@ Per preset and stage (the global warm-up, the joint stage) it reports
   deterministic for a given torch version, so it compares across machines;
 - ``kernels_per_step`` (CUDA only): device kernel launches per step;
 - ``ms_per_step``: wall time per step over a timed run after a warm-up (device synchronised).
+A run of n warm-up steps ends with one joint step (``train`` always runs the joint stage at least once): the
+warm-up figures carry 1/n of a joint step.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Shared fixtures. Real assets live in ../shared/assets beside the clone (never in the repo)."""
+"""Shared fixtures. Real assets live in ../shared/assets beside the clone or in $T2BS_SHARED_ASSETS (never in the
+repo; t2bs.shared_assets)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,21 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see t
 
 import pytest
 
+from t2bs.shared_assets import shared_asset, shared_assets_dir  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
-ASSETS = REPO.parent / "shared" / "assets"
+ASSETS = shared_assets_dir()
 
 
 def asset(name: str) -> Path:
-    """Path of a shared test asset (turtle.glb, facecap.glb, vipe_hero_head.glb); skip if absent."""
-    path = ASSETS / name
+    """Path of a shared test asset (turtle.glb, facecap.glb, vipe_hero_head.glb). Absent: the test is skipped on a
+    developer's machine, and fails in CI (``CI=true``), where the assets are always beside the clone."""
+    path = shared_asset(name)
     if not path.exists():
-        pytest.skip(f"shared asset {path} not present")
+        why = f"shared asset {path} not present (set T2BS_SHARED_ASSETS or put shared/assets beside the checkout)"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(why)
+        pytest.skip(why)
     return path
 
 

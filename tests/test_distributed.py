@@ -78,7 +78,6 @@ def test_ray_cluster_reconstructs_a_project_despite_a_killed_worker(tmp_path):
     SIGKILLed mid-job; every video is still committed exactly once (the killed attempt is retried
     in a fresh staging folder) and equals an in-process run."""
     pytest.importorskip("ray", reason="Ray is an optional extra (pip install 't2bs[ray]')")
-    import signal
     import threading
     import time
 

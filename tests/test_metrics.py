@@ -147,7 +147,8 @@ def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(bench_vcdgs, "run_case", fake_case)
     monkeypatch.setattr(bench_vcdgs, "load_asset", lambda spec: (spec, None))
     out = tmp_path / "bench.json"
-    run = lambda methods, **kw: bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], methods, json_path=out, **kw)
+    def run(methods, **kw):
+        return bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], methods, json_path=out, **kw)
     first = run(["full", "static"])
     assert calls == [("a", "smiling", ("full", "static")), ("b", "smiling", ("full", "static"))]
     assert run(["full", "static"])["rows"] == first["rows"] and len(calls) == 2  # nothing recomputed

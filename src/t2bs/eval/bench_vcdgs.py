@@ -33,7 +33,6 @@ show it as "-" and are left out of its means.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -42,8 +41,9 @@ import typer
 
 from t2bs.errors import UserError
 from t2bs.recon.config import parse_options, preset
+from t2bs.shared_assets import shared_assets_dir
 
-SHARED_ASSETS = Path(os.environ.get("T2BS_SHARED_ASSETS", "/work/shared/assets"))
+SHARED_ASSETS = shared_assets_dir()
 DEFAULT_PROMPTS = ("blinking", "opening the mouth extremely wide", "smiling", "tongue sticking out the mouth")
 ALL_METHODS = ("full", "no_view", "no_refine", "no_lbs", "no_global", "static", "rigid")
 BASELINES = ("static", "rigid")  # no reconstruction: the neutral, and the neutral moved by the true head motion

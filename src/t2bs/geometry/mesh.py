@@ -115,6 +115,20 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n.astype(np.float32)
 
 
+def incident_edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-vertex edge statistics, float64: (mean length of the face edges at each vertex [N] (0 where none),
+    their count [N], the length of every face edge [3F], a shared edge once per face). One splat per vertex is
+    sized from the mean (the VCDGS static Gaussians, the viewer's splats)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])  # [3F, 2]
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    ends = np.concatenate([e[:, 0], e[:, 1]])
+    total = np.bincount(ends, np.concatenate([length, length]), minlength=len(v))
+    count = np.bincount(ends, minlength=len(v)).astype(np.float64)
+    return total / np.maximum(count, 1), count, length
+
+
 def mesh_edges(faces: np.ndarray) -> np.ndarray:
     """Unique undirected edges [E, 2] of a triangle mesh."""
     faces = np.asarray(faces, dtype=np.int64)

@@ -128,9 +128,9 @@ class VCDGSConfig:
     seed: int = 0  # every random choice (sampling, init) derives from it
     device: str = "auto"  # "auto" (cuda if available), "cpu", "cuda"
     compile: bool = False  # torch.compile the training step's deformation and losses (the rasterizer stays as it is):
-    #   fused kernels, ~1/5 of the operator calls per step. CPU, facecap quick joint step 122 -> 90 ms, but each new
-    #   mesh size first compiles for ~50 s on 2 cores (cached on disk after), so it is off by default; on a GPU it is
-    #   not measured yet. docs/BENCHMARKS.md, benchmarks/step_cost.py
+    #   fused kernels, ~1/5 of the operator calls per step, a CPU step ~1.3x faster than eager; but each new mesh size
+    #   first compiles for ~70 s on 2 cores (cached on disk after), so it is off by default; not measured on a GPU yet.
+    #   docs/BENCHMARKS.md (benchmarks/step_cost.py, speed_compare.py)
     threads: int = 2  # torch CPU threads (2: ~1.35x faster than 1 on the 2-core reference machine). A fixed count,
     #   not "all cores", because CPU reductions split work per thread: the same config then gives the same
     #   numbers on every machine and executor. 0 = torch's default

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from t2bs.geometry.camera import Camera
-from t2bs.geometry.mesh import Mesh, face_area_normals
+from t2bs.geometry.mesh import Mesh, face_area_normals, incident_edge_lengths
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
 
 _warned_backend = False
@@ -36,7 +36,8 @@ class StaticGaussians:
 
     def tensors(self, device="cpu") -> dict:
         f = None if self.faces is None else torch.as_tensor(self.faces, dtype=torch.int64, device=device)
-        opt = (lambda a: None if a is None else torch.as_tensor(a, dtype=torch.float32, device=device))
+        def opt(a):
+            return None if a is None else torch.as_tensor(a, dtype=torch.float32, device=device)
         return {"faces": f, "face_colors": opt(self.face_colors), "face_log_scale": opt(self.face_log_scale)}
 
 
@@ -158,15 +159,9 @@ def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussian
     per triangle, on at most ``max_face_gaussians`` of the largest ones (0 = every triangle)."""
     v = mesh.vertices.astype(np.float64)
     f = mesh.faces.astype(np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
-    total = np.zeros(len(v))
-    count = np.zeros(len(v))
-    for k in (0, 1):
-        np.add.at(total, e[:, k], length)
-        np.add.at(count, e[:, k], 1)
+    mean_edge, count, length = incident_edge_lengths(v, f)
     fallback = float(np.median(length)) if len(length) else 0.01
-    mean_edge = np.where(count > 0, total / np.maximum(count, 1), fallback)
+    mean_edge = np.where(count > 0, mean_edge, fallback)
     mean_edge = np.clip(mean_edge, 0.2 * fallback, 5.0 * fallback)
     s = 0.5 * mean_edge
     log_scales = np.log(np.stack([s, s, flatness * s], 1))

@@ -25,8 +25,9 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.geometry.camera import Camera, intrinsics, look_at
 from t2bs.geometry.mesh import Mesh, normalize
+from t2bs.shared_assets import ENV, shared_assets_dir
 
-ASSETS = Path(__file__).resolve().parents[3].parent / "shared" / "assets"
+ASSETS = shared_assets_dir()
 DRIVER_PAIRS = {
     # driver shape -> (target morph direction for a turtle-style rig, for a procedural rig)
     "jawOpen": ("mouthOpen", "jaw_open"),
@@ -68,7 +69,7 @@ def render_driver(weights: dict[str, np.ndarray], size: int = 256, asset: Path |
 
     path = asset or ASSETS / "facecap.glb"
     if not path.exists():
-        raise UserError(f"driver asset {path} not found (shared/assets/facecap.glb)")
+        raise UserError(f"driver asset {path} not found (the shared assets: ${ENV} or ../shared/assets beside the checkout)")
     mesh, _ = normalize(load_mesh(path))
     cam = driver_camera(size)
     frames = []

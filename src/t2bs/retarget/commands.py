@@ -274,8 +274,9 @@ def retarget_from_csv(project_dir: Path, driver: Path, out: Optional[Path] = Non
 
 
 def bench_retarget(
-    target: list[str] = typer.Option(["../shared/assets/turtle.glb"], "--target",
-                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable"),
+    target: list[str] = typer.Option(None, "--target",
+                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable "
+                                          "(default: the shared turtle.glb, $T2BS_SHARED_ASSETS or ../shared/assets)"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="also write the result to this JSON file"),
     frames: int = typer.Option(96, "--frames", help="driver frames"),
     seed: int = typer.Option(0, "--seed"),
@@ -283,7 +284,9 @@ def bench_retarget(
     """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions."""
     from t2bs.retarget.bench import run_bench
 
-    result = run_bench(list(target), frames=frames, seed=seed)
+    from t2bs.shared_assets import shared_asset
+
+    result = run_bench(list(target or [str(shared_asset("turtle.glb"))]), frames=frames, seed=seed)
     text = json.dumps(result, indent=2)
     print(text)
     if json_path is not None:

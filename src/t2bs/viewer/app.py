@@ -37,7 +37,7 @@ import numpy as np
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
-from t2bs.geometry.mesh import Mesh, vertex_normals
+from t2bs.geometry.mesh import Mesh, incident_edge_lengths, vertex_normals
 from t2bs.geometry.io import srgb_to_linear
 
 TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
@@ -297,12 +297,7 @@ def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray)
 def vertex_splat_sigma(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[N] tangential std-dev of one Gaussian per vertex: half the mean incident edge length, so
     neighbouring splats overlap into a closed surface."""
-    v = np.asarray(vertices, np.float64)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])  # [3F, 2]
-    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
-    total = np.bincount(e.ravel(), np.repeat(length, 2), minlength=len(v))
-    count = np.bincount(e.ravel(), minlength=len(v))
-    mean = total / np.maximum(count, 1)
+    mean, count, _ = incident_edge_lengths(vertices, faces)
     fallback = np.median(mean[count > 0]) if (count > 0).any() else 0.01
     return np.where(count > 0, 0.5 * mean, 0.5 * fallback)
 
