@@ -1,7 +1,7 @@
 """ARKit shapes derived through retargeting vs facecap's own 52 ARKit shapes (issue 38, "Must show").
 
 facecap.glb (a human head with the 52 ARKit morph targets) gets a blendshape model from captures of
-its own morph targets (``t2bs.retarget.bench.morph_model``: each shape ramped alone + random mixtures,
+its own morph targets (``t2bs.eval.bench_retarget.morph_model``: each shape ramped alone + random mixtures,
 so the model spans them all), its 20 landmarks from the motion backend, then every ARKit shape is
 derived from the ICT-FaceKit landmark table (``t2bs.retarget.arkit``) without looking at facecap's
 own shapes. For each present shape: cosine between the derived displacement [3N] and facecap's true
@@ -29,7 +29,7 @@ def run(asset: Path = ASSET) -> dict:
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
     from t2bs.retarget.arkit import arkit_name, derive_arkit_shapes, summary
-    from t2bs.retarget.bench import morph_model
+    from t2bs.eval.bench_retarget import morph_model
     from t2bs.retarget.landmarks import detect_landmarks
 
     t0 = time.perf_counter()

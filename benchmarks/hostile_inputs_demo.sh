@@ -79,7 +79,7 @@ z = dict(np.load(sys.argv[1])); z["basis"] = z["basis"].copy(); z["basis"][0, 0,
 EOF
 python3 - "$WORK/drv.mp4" "$(dirname "$SRC")/../shared/assets/facecap.glb" <<'EOF' 2>/dev/null
 import sys, imageio.v2 as imageio
-from t2bs.retarget.bench import driver_weights, render_driver
+from t2bs.eval.bench_retarget import driver_weights, render_driver
 from pathlib import Path
 video = render_driver(driver_weights(8), 192, asset=Path(sys.argv[2]))  # a face MediaPipe finds (shared asset)
 imageio.mimwrite(sys.argv[1], list(video), fps=8, macro_block_size=1)

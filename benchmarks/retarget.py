@@ -7,7 +7,7 @@ python benchmarks/retarget.py [TARGET ...]  (default: the shared turtle.glb, t2b
 import json
 import sys
 
-from t2bs.retarget.bench import run_bench
+from t2bs.eval.bench_retarget import run_bench
 from t2bs.shared_assets import shared_asset
 
 if __name__ == "__main__":

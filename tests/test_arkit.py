@@ -32,7 +32,7 @@ def test_names_and_reference_table():
 def facecap():
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
-    from t2bs.retarget.bench import morph_model
+    from t2bs.eval.bench_retarget import morph_model
     from t2bs.retarget.landmarks import detect_landmarks
 
     asset("facecap.glb")  # skipped here when absent, a failure in CI

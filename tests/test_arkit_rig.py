@@ -25,7 +25,7 @@ def fox_project(tmp_path_factory):
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, write_json
     from t2bs.retarget.arkit import project_arkit_shapes
-    from t2bs.retarget.bench import load_target, morph_model
+    from t2bs.eval.bench_retarget import load_target, morph_model
 
     _, mesh, _ = load_target("procedural:a cartoon fox")
     root = tmp_path_factory.mktemp("fox")

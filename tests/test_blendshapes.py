@@ -206,7 +206,7 @@ def test_rgb_term_pulls_weights_towards_the_target_images():
 
 
 def test_held_out_expressions_on_turtle_with_the_video_animator():
-    from t2bs.blendshapes.commands import _asset_captures, evaluate_held_out
+    from t2bs.eval.bench_blendshapes import _asset_captures, evaluate_held_out
 
     asset("turtle.glb")  # skipped here when absent, a failure in CI
     mesh, caps, expr, made_by, _ = _asset_captures(str(TURTLE), "gt", frames=12, prompts=20, seed=0, facing="+z")
@@ -221,7 +221,8 @@ def test_held_out_expressions_on_turtle_with_the_video_animator():
 
 
 def test_blendshapes_command_end_to_end(tmp_path, capsys):
-    from t2bs.blendshapes.commands import blendshapes_command, morph_captures
+    from t2bs.blendshapes.commands import blendshapes_command
+    from t2bs.eval.bench_blendshapes import morph_captures
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.geometry.mesh import normalize
 
@@ -268,7 +269,7 @@ def test_bench_json_output_contract(tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from t2bs.blendshapes.commands import bench_blendshapes_command
+    from t2bs.eval.bench_blendshapes import bench_blendshapes_command
 
     asset("turtle.glb")  # skipped here when absent, a failure in CI
     app = typer.Typer()

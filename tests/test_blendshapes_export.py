@@ -22,7 +22,7 @@ TURTLE = shared_asset("turtle.glb")
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     """(model, character, path of model.glb) built from turtle captures of the video animator."""
-    from t2bs.blendshapes.commands import animator_captures
+    from t2bs.eval.bench_blendshapes import animator_captures
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
 

@@ -99,10 +99,10 @@ def test_compiled_step_equals_the_eager_step():
         sum(terms.values()).backward()
         grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
         if fn is step_terms:
-            ref_terms, ref_grads = {k: float(v) for k, v in terms.items()}, grads
+            ref_terms, ref_grads = {k: float(v.detach()) for k, v in terms.items()}, grads
     assert set(terms) == set(ref_terms) and "track" in terms and "rigidity" in terms
     for k, v in terms.items():
-        assert float(v) == pytest.approx(ref_terms[k], rel=1e-4, abs=1e-7), k
+        assert float(v.detach()) == pytest.approx(ref_terms[k], rel=1e-4, abs=1e-7), k
     top = max(float(g.abs().max()) for g in ref_grads.values())
     for name, g in grads.items():
         scale = max(float(ref_grads[name].abs().max()), 1e-3 * top)

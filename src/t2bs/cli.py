@@ -61,8 +61,11 @@ bench_app.command("raster")(bench_raster_command)
 from t2bs.eval.bench_vcdgs import bench_vcdgs_command  # noqa: E402
 
 bench_app.command("vcdgs")(bench_vcdgs_command)
-bench_app.command("blendshapes")(_blendshapes.bench_blendshapes_command)
-bench_app.command("retarget")(_retarget.bench_retarget)
+from t2bs.eval.bench_blendshapes import bench_blendshapes_command  # noqa: E402
+from t2bs.eval.bench_retarget import bench_retarget  # noqa: E402
+
+bench_app.command("blendshapes")(bench_blendshapes_command)
+bench_app.command("retarget")(bench_retarget)
 
 
 def main() -> None:

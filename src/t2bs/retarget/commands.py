@@ -271,23 +271,3 @@ def retarget_from_csv(project_dir: Path, driver: Path, out: Optional[Path] = Non
     print(f"retargeted {n} frames at {rate:.0f} Hz ({len(used)} ARKit shapes) -> "
           f"{out}/weights.csv, animation.glb, preview.mp4")
     return out
-
-
-def bench_retarget(
-    target: list[str] = typer.Option(None, "--target",
-                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable "
-                                          "(default: the shared turtle.glb, $T2BS_SHARED_ASSETS or ../shared/assets)"),
-    json_path: Optional[Path] = typer.Option(None, "--json", help="also write the result to this JSON file"),
-    frames: int = typer.Option(96, "--frames", help="driver frames"),
-    seed: int = typer.Option(0, "--seed"),
-) -> None:
-    """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions."""
-    from t2bs.retarget.bench import run_bench
-
-    from t2bs.shared_assets import shared_asset
-
-    result = run_bench(list(target or [str(shared_asset("turtle.glb"))]), frames=frames, seed=seed)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if json_path is not None:
-        write_json(json_path, result)

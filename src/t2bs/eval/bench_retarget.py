@@ -1,4 +1,4 @@
-"""`t2bs bench retarget`: end to end against ground truth (issue 8, "Must show").
+"""`t2bs bench retarget`: retargeting end to end against ground truth (issue 8, "Must show").
 
 Driver: facecap.glb (a realistic human head) animated with its own ARKit morphs jawOpen,
 eyeBlink_L, eyeBlink_R and mouthSmile_L/R (together), rendered with the mesh renderer from a
@@ -17,15 +17,19 @@ Targets:
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
+import typer
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import Camera, intrinsics, look_at
 from t2bs.geometry.mesh import Mesh, normalize
-from t2bs.shared_assets import ENV, shared_assets_dir
+from t2bs.project import write_json
+from t2bs.shared_assets import ENV, shared_asset, shared_assets_dir
 
 ASSETS = shared_assets_dir()
 DRIVER_PAIRS = {
@@ -197,3 +201,19 @@ def run_bench(targets: list[str], frames: int = 96, size: int = 256, seed: int =
                    "neutral_frame": track.neutral},
         "seconds": {"render_driver": round(t_render, 2), "track": round(t_track, 2), "total": round(time.perf_counter() - t0, 2)},
     }
+
+
+def bench_retarget(
+    target: list[str] = typer.Option(None, "--target",
+                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable "
+                                          "(default: the shared turtle.glb, $T2BS_SHARED_ASSETS or ../shared/assets)"),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="also write the result to this JSON file"),
+    frames: int = typer.Option(96, "--frames", help="driver frames"),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions."""
+    result = run_bench(list(target or [str(shared_asset("turtle.glb"))]), frames=frames, seed=seed)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if json_path is not None:
+        write_json(json_path, result)
