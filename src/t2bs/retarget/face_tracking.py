@@ -195,20 +195,6 @@ def run_face_mesh(frames: np.ndarray, static: bool = False, progress=None) -> tu
 # From 468 points to the 20, head pose removed
 # ----------------------------------------------------------------------------------------------
 
-def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama: scale s, rotation R [d, d], translation t with s R src + t ~ dst (points [P, d])."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    cov = b.T @ a / len(src)
-    u, sig, vt = np.linalg.svd(cov)
-    d = np.ones(len(sig))
-    d[-1] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rot = u @ np.diag(d) @ vt
-    var = (a**2).sum() / len(src)
-    s = float((sig * d).sum() / max(var, 1e-12))
-    return s, rot, mu_d - s * rot @ mu_s
-
-
 def eye_openness(p: np.ndarray, eye: str) -> np.ndarray:
     """Lid gap / eye width for points [..., 20, >=2] (image y down) -> [...]."""
     c0, c1 = EYE_CORNERS[eye]
@@ -279,9 +265,16 @@ def track_landmarks(lm468: np.ndarray, found: np.ndarray, fps: float, config: Tr
     # Remove head motion: similarity fit of the stable points of each frame onto the neutral frame's.
     ref = lm468[neutral, STABLE_MEDIAPIPE]
     aligned = np.zeros((t, 20, 3))
-    for i in np.nonzero(found)[0]:
-        s, rot, tr = similarity_fit(lm468[i, STABLE_MEDIAPIPE], ref)
-        aligned[i] = s * image20[i] @ rot.T + tr
+    idx = np.nonzero(found)[0]
+    if len(idx):  # Umeyama (roma): s R x + t ~ ref for each frame's stable points, all frames in one call
+        import roma
+        import torch
+
+        src = torch.as_tensor(lm468[idx][:, STABLE_MEDIAPIPE], dtype=torch.float64)
+        rot, tr, s = roma.rigid_points_registration(src, torch.as_tensor(ref, dtype=torch.float64).expand_as(src),
+                                                    compute_scaling=True)
+        aligned[idx] = (s[:, None, None] * torch.as_tensor(image20[idx], dtype=torch.float64) @ rot.transpose(1, 2)
+                        + tr[:, None]).numpy()
     missing = np.nonzero(~found)[0]
     if len(missing):
         aligned = fill_missing(aligned, found)
