@@ -52,20 +52,16 @@ def frame_quat(u: torch.Tensor, w: torch.Tensor, n: torch.Tensor) -> torch.Tenso
     m01, m11, m21 = w.unbind(-1)
     m02, m12, m22 = n.unbind(-1)
     trace = m00 + m11 + m22
+    # Per formula: the square root's argument (16 x the big component squared / 4) and the X, Y, Z, W numerators
+    # (None: the big component itself, s / 4).
+    formulas = ((1.0 + trace, (m21 - m12, m02 - m20, m10 - m01, None)),
+                (1.0 + 2.0 * m00 - trace, (None, m01 + m10, m02 + m20, m21 - m12)),
+                (1.0 + 2.0 * m11 - trace, (m01 + m10, None, m12 + m21, m02 - m20)),
+                (1.0 + 2.0 * m22 - trace, (m02 + m20, m12 + m21, None, m10 - m01)))
     cands = []
-    for k, d in enumerate((trace, m00, m11, m22)):
-        s = 2.0 * ((1.0 + 2.0 * d - trace) if k else (1.0 + trace)).clamp_min(1e-8).sqrt()  # 4 |component k|
-        if k == 0:
-            c = (m21 - m12, m02 - m20, m10 - m01, None)
-        elif k == 1:
-            c = (None, m01 + m10, m02 + m20, m21 - m12)
-        elif k == 2:
-            c = (m01 + m10, None, m12 + m21, m02 - m20)
-        else:
-            c = (m02 + m20, m12 + m21, None, m10 - m01)
-        big = 0.25 * s
-        comp = [big if x is None else x / s for x in c]  # XYZ then W for k = 0 (W is the big one)
-        cands.append(torch.stack(comp[:3] + [comp[3]], -1) if k else torch.stack([comp[0], comp[1], comp[2], big], -1))
+    for arg, numerators in formulas:
+        s = 2.0 * arg.clamp_min(1e-8).sqrt()  # 4 x the big component
+        cands.append(torch.stack([0.25 * s if x is None else x / s for x in numerators], -1))
     best = torch.stack([trace, m00, m11, m22], -1).argmax(-1, keepdim=True)  # contiguous: cheap
     q = torch.where(best == 0, cands[0], torch.where(best == 1, cands[1], torch.where(best == 2, cands[2], cands[3])))
     return q / q.norm(dim=-1, keepdim=True)

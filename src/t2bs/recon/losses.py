@@ -146,6 +146,9 @@ class PerceptualLoss(nn.Module):
         return 1.0 - ssim(a, b, data_range=1.0, size_average=True, win_size=win)
 
 
+IMAGE_TERMS = ("huber", "mask", "dssim", "lpips")  # the names image_loss gives its terms (the "image" loss)
+
+
 def image_loss(render: dict, target: torch.Tensor, mask: torch.Tensor | None, perceptual: PerceptualLoss, cfg) -> dict:
     """render: rasterizer output; target [B, H, W, 3]; mask [B, H, W] float or None -> loss terms."""
     rgb = render["rgb"]

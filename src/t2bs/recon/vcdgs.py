@@ -57,7 +57,7 @@ from t2bs.recon.control_points import build_control_points
 from t2bs.recon.deform import VCDGSModel
 from t2bs.recon.lbs import matvec
 from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render, with_faces
-from t2bs.recon.losses import PerceptualLoss, image_loss
+from t2bs.recon.losses import IMAGE_TERMS, PerceptualLoss, image_loss
 from t2bs.recon.tracks import VertexTracks, compute_tracks, track_loss
 
 
@@ -354,9 +354,6 @@ def _render_uncompiled(*args):
     return render(*args)
 
 
-_IMAGE_TERMS = ("huber", "mask", "dssim", "lpips")  # image_loss's terms: the history's "image" loss
-
-
 def step_terms(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, v_idx: torch.Tensor, t_idx: torch.Tensor,
                vm: torch.Tensor, ks: torch.Tensor, perceptual: PerceptualLoss, joint: bool, coarse: int = 0,
                rest_seen: torch.Tensor | None = None) -> dict:
@@ -391,7 +388,7 @@ def step_terms(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, v_idx: torc
 def _train_only_global(model: VCDGSModel, only: bool) -> None:
     """The warm-up optimises T_global alone: the other networks get no gradient then, so the backward
     pass skips them (their optimisers do not step in the warm-up either way)."""
-    for name, mod in (("deform", model.deform), ("refine", model.refine)):
+    for mod in (model.deform, model.refine):
         if mod is not None:
             mod.requires_grad_(not only)
 
@@ -460,7 +457,7 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
             rest_seen = _rest_as_seen(model, data.views)
         k = _coarse_level(step, warm, cfg.global_coarse, min(w, h)) if not joint else 0
         terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, coarse=k, rest_seen=rest_seen)
-        img = sum(v for n, v in terms.items() if n in _IMAGE_TERMS).detach()
+        img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
         loss = sum(terms.values())
         for o in opts.values():
             o.zero_grad(set_to_none=True)
