@@ -509,23 +509,31 @@ def unet_key_to_published(key: str, downsample_keys: set[str]) -> str:
                   lambda m: f".{m[1]}.{0 if m[2] == '1' else 2}.", key)
 
 
+def _clip_renames(layers: int) -> list[tuple[str, str]]:
+    """(OpenCLIP key, transformers key) of every CLIP weight that is only renamed: all but the projection
+    (transposed) and the fused q/k/v input projection of each layer (split in three)."""
+    pairs = [("conv1.weight", "vision_model.embeddings.patch_embedding.weight"),
+             ("class_embedding", "vision_model.embeddings.class_embedding"),
+             ("positional_embedding", "vision_model.embeddings.position_embedding.weight")]
+    for p in ("weight", "bias"):
+        pairs += [(f"ln_pre.{p}", f"vision_model.pre_layrnorm.{p}"), (f"ln_post.{p}", f"vision_model.post_layernorm.{p}")]
+        for i in range(layers):
+            src, dst = f"transformer.resblocks.{i}.", f"vision_model.encoder.layers.{i}."
+            pairs += [(f"{src}{old}.{p}", f"{dst}{new}.{p}") for old, new in (
+                ("attn.out_proj", "self_attn.out_proj"), ("ln_1", "layer_norm1"), ("ln_2", "layer_norm2"),
+                ("mlp.c_fc", "mlp.fc1"), ("mlp.c_proj", "mlp.fc2"))]
+    return pairs
+
+
 def clip_to_ours(sd: dict, layers: int) -> dict:
     """OpenCLIP visual tower keys -> transformers CLIPVisionModelWithProjection keys."""
-    out = {"vision_model.embeddings.patch_embedding.weight": sd["conv1.weight"],
-           "vision_model.embeddings.class_embedding": sd["class_embedding"],
-           "vision_model.embeddings.position_embedding.weight": sd["positional_embedding"],
-           "visual_projection.weight": sd["proj"].t().contiguous()}
-    for old, new in (("ln_pre", "vision_model.pre_layrnorm"), ("ln_post", "vision_model.post_layernorm")):
-        for p in ("weight", "bias"):
-            out[f"{new}.{p}"] = sd[f"{old}.{p}"]
+    out = {ours: sd[theirs] for theirs, ours in _clip_renames(layers)}
+    out["visual_projection.weight"] = sd["proj"].t().contiguous()
     for i in range(layers):
         src, dst = f"transformer.resblocks.{i}.", f"vision_model.encoder.layers.{i}."
         for p in ("weight", "bias"):
-            q, k, v = sd[f"{src}attn.in_proj_{p}"].chunk(3)
-            out[f"{dst}self_attn.q_proj.{p}"], out[f"{dst}self_attn.k_proj.{p}"], out[f"{dst}self_attn.v_proj.{p}"] = q, k, v
-            for old, new in (("attn.out_proj", "self_attn.out_proj"), ("ln_1", "layer_norm1"), ("ln_2", "layer_norm2"),
-                             ("mlp.c_fc", "mlp.fc1"), ("mlp.c_proj", "mlp.fc2")):
-                out[f"{dst}{new}.{p}"] = sd[f"{src}{old}.{p}"]
+            for n, part in zip("qkv", sd[f"{src}attn.in_proj_{p}"].chunk(3)):
+                out[f"{dst}self_attn.{n}_proj.{p}"] = part
     return out
 
 
@@ -533,20 +541,12 @@ def clip_to_published(sd: dict, layers: int) -> dict:
     """Inverse of ``clip_to_ours``."""
     import torch
 
-    out = {"conv1.weight": sd["vision_model.embeddings.patch_embedding.weight"],
-           "class_embedding": sd["vision_model.embeddings.class_embedding"],
-           "positional_embedding": sd["vision_model.embeddings.position_embedding.weight"],
-           "proj": sd["visual_projection.weight"].t().contiguous()}
-    for old, new in (("ln_pre", "vision_model.pre_layrnorm"), ("ln_post", "vision_model.post_layernorm")):
-        for p in ("weight", "bias"):
-            out[f"{old}.{p}"] = sd[f"{new}.{p}"]
+    out = {theirs: sd[ours] for theirs, ours in _clip_renames(layers)}
+    out["proj"] = sd["visual_projection.weight"].t().contiguous()
     for i in range(layers):
         dst, src = f"transformer.resblocks.{i}.", f"vision_model.encoder.layers.{i}."
         for p in ("weight", "bias"):
             out[f"{dst}attn.in_proj_{p}"] = torch.cat([sd[f"{src}self_attn.{n}_proj.{p}"] for n in "qkv"])
-            for old, new in (("attn.out_proj", "self_attn.out_proj"), ("ln_1", "layer_norm1"), ("ln_2", "layer_norm2"),
-                             ("mlp.c_fc", "mlp.fc1"), ("mlp.c_proj", "mlp.fc2")):
-                out[f"{dst}{old}.{p}"] = sd[f"{src}{new}.{p}"]
     return out
 
 
