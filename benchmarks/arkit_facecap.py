@@ -3,7 +3,7 @@
 facecap.glb (a human head with the 52 ARKit morph targets) gets a blendshape model from captures of
 its own morph targets (``t2bs.eval.bench_retarget.morph_model``: each shape ramped alone + random mixtures,
 so the model spans them all), its 20 landmarks from the motion backend, then every ARKit shape is
-derived from the ICT-FaceKit landmark table (``t2bs.retarget.arkit``) without looking at facecap's
+derived from the ICT-FaceKit landmark table (``t2bs.face.arkit``) without looking at facecap's
 own shapes. For each present shape: cosine between the derived displacement [3N] and facecap's true
 one, over the head's vertices; median and worst.
 
@@ -28,9 +28,9 @@ ASSET = shared_asset("facecap.glb")
 def run(asset: Path = ASSET) -> dict:
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
-    from t2bs.retarget.arkit import arkit_name, derive_arkit_shapes, summary
+    from t2bs.face.arkit import arkit_name, derive_arkit_shapes, summary
     from t2bs.eval.bench_retarget import morph_model
-    from t2bs.retarget.landmarks import detect_landmarks
+    from t2bs.face.landmarks import detect_landmarks
 
     t0 = time.perf_counter()
     mesh, _ = normalize(load_mesh(asset))

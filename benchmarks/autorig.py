@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 import numpy as np  # noqa: E402
 import typer  # noqa: E402
 
-from t2bs.errors import run_command  # noqa: E402
+from t2bs.cli.exits import run_command  # noqa: E402
 from t2bs.shared_assets import shared_assets_dir  # noqa: E402
 
 SHARED = shared_assets_dir()
@@ -105,7 +105,7 @@ def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, 
     stripped = replace(mesh, morph_targets={})
     t0 = time.perf_counter()
     if user_landmarks:
-        from t2bs.retarget.landmarks import detect_landmarks
+        from t2bs.face.landmarks import detect_landmarks
 
         lm, _ = detect_landmarks(mesh, backend="motion", renderer=renderer)
         face = FaceLandmarks(np.asarray(lm.vertex_ids, np.int64), "file (t2bs landmarks on the rigged asset)", {},

@@ -21,7 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 import numpy as np  # noqa: E402
 import typer  # noqa: E402
 
-from t2bs.errors import UserError, run_command  # noqa: E402
+from t2bs.cli.exits import run_command
+from t2bs.errors import UserError  # noqa: E402
 
 
 def peak_frames(displacements: np.ndarray, count: int) -> list[int]:
@@ -50,7 +51,7 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     import torch
     from PIL import Image
 
-    from t2bs.eval.metrics import expression_metrics
+    from t2bs.geometry.metrics import expression_metrics
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.project import Project, atomic_path
     from t2bs.recon.gaussians import camera_tensors, render

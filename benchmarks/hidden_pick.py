@@ -33,13 +33,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 import numpy as np  # noqa: E402
 import typer  # noqa: E402
 
-from t2bs.errors import UserError, run_command  # noqa: E402
+from t2bs.cli.exits import run_command
+from t2bs.errors import UserError  # noqa: E402
 
 
 def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) -> dict:
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.recon.config import preset
-    from t2bs.eval.metrics import geometry_metrics
+    from t2bs.geometry.metrics import geometry_metrics
     from t2bs.geometry.rigid import apply_motion
     from t2bs.recon.hidden_parts import cluster_motions, compare_views, hidden_parts, pick_hidden_motions, render_losses
     from t2bs.recon.tracks import rest_visibility

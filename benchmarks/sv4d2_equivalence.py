@@ -33,7 +33,7 @@ from pathlib import Path
 
 import typer
 
-from t2bs.errors import run_command
+from t2bs.cli.exits import run_command
 
 
 def _stub_package(name: str, path: Path | None = None):

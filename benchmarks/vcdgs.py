@@ -10,7 +10,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from t2bs.errors import run_command  # noqa: E402
+from t2bs.cli.exits import run_command  # noqa: E402
 from t2bs.eval.bench_vcdgs import bench_vcdgs_command  # noqa: E402
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import asset
-from t2bs.retarget.arkit import ARKIT_GROUPS, ARKIT_NAMES, arkit_name, derive_arkit_shapes, load_reference
+from t2bs.face.arkit import ARKIT_GROUPS, ARKIT_NAMES, arkit_name, derive_arkit_shapes, load_reference
 from t2bs.shared_assets import shared_asset
 
 FACECAP = shared_asset("facecap.glb")
@@ -33,7 +33,7 @@ def facecap():
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
     from t2bs.eval.bench_retarget import morph_model
-    from t2bs.retarget.landmarks import detect_landmarks
+    from t2bs.face.landmarks import detect_landmarks
 
     asset("facecap.glb")  # skipped here when absent, a failure in CI
     mesh, _ = normalize(load_mesh(FACECAP))
@@ -86,7 +86,7 @@ def test_a_rig_that_only_blinks_both_eyes_has_no_one_eyed_blink(facecap):
 def test_report_lists_arkit_shapes_and_how_to_open_the_rig(tmp_path):
     from t2bs.pipeline import write_report
     from t2bs.project import Project, write_json
-    from t2bs.retarget.arkit import ArkitShapes
+    from t2bs.face.arkit import ArkitShapes
 
     report = {"jawOpen": {"present": True, "why": "derived"}, "browInnerUp": {"present": False, "why": "cannot see it"}}
     write_json(tmp_path / "blendshapes" / "arkit.json", ArkitShapes(["jawOpen"], np.ones((1, 2)), report).to_dict())

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from t2bs.blendshapes.vrm import PRESETS, VPL_URL, bind_presets
 from t2bs.cli import app
 from t2bs.errors import UserError
-from t2bs.retarget.livelink import HEAD_COLUMNS, LIVE_LINK_ORDER, read_livelink_csv, write_livelink_csv
+from t2bs.face.livelink import HEAD_COLUMNS, LIVE_LINK_ORDER, read_livelink_csv, write_livelink_csv
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def fox_project(tmp_path_factory):
     from t2bs.blendshapes.model import save_model
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, write_json
-    from t2bs.retarget.arkit import project_arkit_shapes
+    from t2bs.face.arkit import project_arkit_shapes
     from t2bs.eval.bench_retarget import load_target, morph_model
 
     _, mesh, _ = load_target("procedural:a cartoon fox")

@@ -9,7 +9,7 @@ import pytest
 
 from t2bs.errors import UserError
 from t2bs.geometry.mesh import Mesh
-from t2bs.retarget.landmarks import EYE_ANGLES, MOUTH_ANGLES
+from t2bs.face.landmarks import EYE_ANGLES, MOUTH_ANGLES
 from t2bs.rig.autorig import autorig
 from t2bs.rig.face import FaceLandmarks, find_eyeballs, find_face, read_landmarks_file
 

@@ -244,7 +244,7 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
     model = load_model(tmp_path / "blendshapes" / "model.npz")
     assert model.semantic_names == ["blink", "smile", "tongue_out"]
     rig = load_mesh(tmp_path / "blendshapes" / "model.glb")
-    from t2bs.retarget.arkit import load_arkit_shapes
+    from t2bs.face.arkit import load_arkit_shapes
 
     visible = [model.names[k] for k in model.visible_components()]
     assert 0 < len(visible) < model.num_components  # the head turns' rounding residue is not exported

@@ -38,8 +38,8 @@ def rig(tmp_path_factory):
 
 
 def _arkit(model, mesh):
-    from t2bs.retarget.arkit import derive_arkit_shapes
-    from t2bs.retarget.landmarks import detect_landmarks
+    from t2bs.face.arkit import derive_arkit_shapes
+    from t2bs.face.landmarks import detect_landmarks
 
     lm, _ = detect_landmarks(mesh, "auto", model=model)
     return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
@@ -57,7 +57,7 @@ def test_glb_round_trip_targets_animation(rig):
     from t2bs.geometry.io import load_mesh
 
     from t2bs.blendshapes.model import VISIBLE_FRACTION
-    from t2bs.retarget.arkit import ARKIT_NAMES
+    from t2bs.face.arkit import ARKIT_NAMES
 
     model, mesh, path = rig
     back = load_mesh(path)

@@ -9,7 +9,7 @@ import trimesh
 from t2bs.eval.bench_vcdgs import full_vs_markdown, markdown, seen_vertices, summarise
 from t2bs.geometry.mesh import vertex_normals
 from t2bs.errors import UserError
-from t2bs.eval.metrics import expression_metrics, geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
+from t2bs.geometry.metrics import expression_metrics, geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
 
 
 def cube():

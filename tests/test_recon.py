@@ -118,7 +118,7 @@ def test_control_point_weights_sum_to_one_and_spread():
 
 
 def test_output_smoothing_keeps_rigid_motion_and_removes_vertex_noise():
-    from t2bs.eval.metrics import normal_consistency
+    from t2bs.geometry.metrics import normal_consistency
     from t2bs.recon.extract import smooth_displacements
 
     mesh = sphere_mesh(3)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from t2bs.eval.metrics import expression_metrics
+from t2bs.geometry.metrics import expression_metrics
 from t2bs.eval.scenes import lid_scene
 from t2bs.recon.config import preset
 

@@ -66,7 +66,7 @@ def _build_tiny_checkpoints(root):
 
 @pytest.fixture(scope="module")
 def segmenter(tmp_path_factory):
-    from t2bs.retarget.grounding_sam import GroundingSamSegmenter
+    from t2bs.face.grounding_sam import GroundingSamSegmenter
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny models: threads only cost time on a shared machine
@@ -86,7 +86,7 @@ def character():
 
 def test_tiny_grounding_sam_end_to_end(segmenter, character, mesh_renderer):
     from t2bs.geometry.camera import frontal_camera
-    from t2bs.retarget.landmarks import detect_landmarks
+    from t2bs.face.landmarks import detect_landmarks
 
     size = 96
     image = (mesh_renderer.render(character, frontal_camera(size)).rgb * 255).astype(np.uint8)  # [96, 96, 3]

@@ -429,7 +429,7 @@ def test_arkit_shapes_listed_first_and_grouped(project, tmp_path):
     """With blendshapes/arkit.json the ARKit shapes come first (ARKit order, eyes/jaw folders), and a
     Live Link style weights.csv (ARKit columns + head rotation) plays through them."""
     from t2bs.project import write_json
-    from t2bs.retarget.arkit import ArkitShapes
+    from t2bs.face.arkit import ArkitShapes
 
     root, info = project
     copy = tmp_path / "proj"

@@ -48,7 +48,7 @@ def read_obj_vertices(repo: Path, name: str) -> np.ndarray:
 
 
 def main(repo: str) -> None:
-    from t2bs.retarget.arkit import ARKIT_NAMES
+    from t2bs.face.arkit import ARKIT_NAMES
 
     root = Path(repo)
     git_dir = root / ".git" if (root / ".git").exists() else root

@@ -242,7 +242,7 @@ def _write_markdown(project: Project, report: dict) -> None:
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
     lines += ["", "## Videos", "",
               "Expression: each frame's head motion taken out, over the vertices whose true non-rigid motion exceeds "
-              "0.5 % of the diagonal; rigid = the neutral moved by the true head motion (eval/metrics.py).", "",
+              "0.5 % of the diagonal; rigid = the neutral moved by the true head motion (geometry/metrics.py).", "",
               "| video | expression p2p (rigid) | recovered / cosine | p2p moving (static) | NC (static) | seconds | contact sheet |",
               "|---|---|---|---|---|---|---|"]
     for v in report["videos"]:

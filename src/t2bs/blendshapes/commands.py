@@ -159,7 +159,7 @@ def _arkit_shapes(project, model, character, folder: Path):
     stage's staging folder, so they land with the model; None (said in one line) when the character has no
     landmarks to derive them from (a previous arkit.json is then removed)."""
     from t2bs.project import write_json
-    from t2bs.retarget.arkit import project_arkit_shapes, summary
+    from t2bs.face.arkit import project_arkit_shapes, summary
 
     path = folder / "arkit.json"
     try:
@@ -172,7 +172,7 @@ def _arkit_shapes(project, model, character, folder: Path):
     print(f"blendshapes: {summary(shapes)} (why each: {project.path('blendshapes', 'arkit.json')})")
     if shapes.names:
         from t2bs.project import write_image
-        from t2bs.retarget.arkit import contact_sheet
+        from t2bs.face.arkit import contact_sheet
 
         write_image(folder / "arkit_sheet.png", contact_sheet(model, character, shapes))
     return shapes

@@ -1,7 +1,7 @@
 """Export a blendshape model as glTF morph targets (and optionally USD blend shapes).
 
 glTF (``model.glb``): the neutral textured character (``t2bs.geometry.io.save_mesh``), morph
-targets in the order a user looks for them: the ARKit-named shapes (``t2bs.retarget.arkit``, Apple's
+targets in the order a user looks for them: the ARKit-named shapes (``t2bs.face.arkit``, Apple's
 names), then the prompt-named shapes, then the PCA components that move something visible (the
 exported target's largest vertex offset is at least ``model.VISIBLE_FRACTION`` of the bounding-box diagonal,
 about one pixel of the 512-px frontal render; ``model.npz`` keeps the full basis). build_model took each
@@ -59,7 +59,7 @@ def _named(arkit) -> tuple[list[str], np.ndarray | None]:
 
 def rig_targets(model: BlendshapeModel, arkit=None) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(names [M], offsets [M, N, 3], per-target scale [K'] of the kept PCA part) as exported:
-    ARKit shapes (``arkit``: ``t2bs.retarget.arkit.ArkitShapes`` or None), named shapes, visible PCs."""
+    ARKit shapes (``arkit``: ``t2bs.face.arkit.ArkitShapes`` or None), named shapes, visible PCs."""
     keep = model.visible_components()
     rng = target_ranges(model)[keep]
     pcs = model.basis[keep].astype(np.float64) * rng[:, None, None]

@@ -36,7 +36,7 @@ def export_command(
     from t2bs.blendshapes.export import export_glb, export_usd
     from t2bs.blendshapes.model import load_model
     from t2bs.project import Project, read_json
-    from t2bs.retarget.arkit import load_arkit_shapes
+    from t2bs.face.arkit import load_arkit_shapes
 
     if format not in FORMATS:
         raise UserError(f"unknown --format {format!r}; use one of {', '.join(FORMATS)}")

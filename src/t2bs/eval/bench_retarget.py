@@ -148,9 +148,9 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
 
 def retarget_target(spec: str, track, weights: dict[str, np.ndarray], renderer=None) -> list[dict]:
     """Retarget ``track`` onto one target and correlate with the driver weights; rows of the contract."""
-    from t2bs.retarget.landmarks import detect_landmarks
-    from t2bs.retarget.solve import RetargetSolver
-    from t2bs.retarget.transfer import transfer_motion
+    from t2bs.face.landmarks import detect_landmarks
+    from t2bs.face.solve import RetargetSolver
+    from t2bs.face.transfer import transfer_motion
 
     label, mesh, procedural = load_target(spec)
     model = morph_model(mesh)
@@ -178,7 +178,7 @@ def retarget_target(spec: str, track, weights: dict[str, np.ndarray], renderer=N
 
 def run_bench(targets: list[str], frames: int = 96, size: int = 256, seed: int = 0, save_dir: Path | None = None) -> dict:
     from t2bs.render.mesh_renderer import MeshRenderer
-    from t2bs.retarget.face_tracking import TrackConfig, track_face
+    from t2bs.face.face_tracking import TrackConfig, track_face
 
     t0 = time.perf_counter()
     weights = driver_weights(frames, seed)

@@ -5,7 +5,7 @@ morph targets (the ground truth), renders the 15-view grid (t2bs.video.synth) wi
 simulated generator defects, and VCDGS reconstructs it with every requested method. Two orbit
 views (``--holdout``, default 4 and 10: azimuth -25.7 and +25.7 deg) are never trained on.
 
-Columns, expression first (eval.metrics.expression_metrics): each frame's head motion taken out of the truth and
+Columns, expression first (geometry.metrics.expression_metrics): each frame's head motion taken out of the truth and
 out of the reconstruction, over the vertices whose true non-rigid motion exceeds 0.5 % of the diagonal: expr_p2p,
 expr/rigid (its ratio to the rigid oracle: 1 = no better than perfect head tracking with a neutral face),
 recovered (|recovered motion| / |true motion| there) and cosine (its direction). Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
@@ -99,7 +99,7 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
              options: dict | None = None) -> list[dict]:
     import torch
 
-    from t2bs.eval.metrics import expression_metrics, geometry_metrics, psnr, ssim
+    from t2bs.geometry.metrics import expression_metrics, geometry_metrics, psnr, ssim
     from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer

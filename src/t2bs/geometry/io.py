@@ -389,7 +389,7 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, animation: dict | None = None
     "name": str} adds a glTF animation driving the morph weights; optional "rotation": [T, 4]
     unit quaternions (x, y, z, w) and "translation": [T, 3] animate the node rigidly (a head turn).
     """
-    from t2bs.project import atomic_path
+    from t2bs.fileio import atomic_path
 
     path = Path(path)
     suffix = path.suffix.lower()

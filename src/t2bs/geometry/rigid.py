@@ -1,6 +1,6 @@
 """Rigid motion of point sets over frames: the dominant (head) motion and what is left without it.
 
-Used by the expression metric (eval.metrics), by PCA over captures (blendshapes: no component may be a head turn)
+Used by the expression metric (geometry.metrics), by PCA over captures (blendshapes: no component may be a head turn)
 and by the pick of hidden parts (recon.hidden_parts). numpy in, numpy out.
 """
 

@@ -57,7 +57,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
          "huber_static": evaluate_image_loss(result.model, result.data, cfg, deformed=False),
          "huber_recon": evaluate_image_loss(result.model, result.data, cfg, deformed=True)}
     if grid.gt_vertices is not None:
-        from t2bs.eval.metrics import expression_metrics, geometry_metrics
+        from t2bs.geometry.metrics import expression_metrics, geometry_metrics
 
         static = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
         # The expression with each frame's head motion taken out (expr_rigid: the rigid oracle's error, a perfect

@@ -39,7 +39,7 @@ def _load_model(project: Project, required: bool):
 
 def compute_landmarks(project_dir: Path, backend: str = "auto", override: Optional[Path] = None, show: bool = False):
     """Detect (or read from the user's JSON) the 20 landmarks; writes DIR/landmarks/landmarks.json."""
-    from t2bs.retarget.landmarks import detect_landmarks, landmarks_from_override, overlay_image
+    from t2bs.face.landmarks import detect_landmarks, landmarks_from_override, overlay_image
 
     project, mesh = _load_character(project_dir)
     model = _load_model(project, required=False)
@@ -85,7 +85,7 @@ def landmarks_command(
 
 def _read_landmarks(path: Path, num_vertices: int):
     """landmarks.json validated; None (with a notice, so they are detected again) when missing or broken."""
-    from t2bs.retarget.landmarks import Landmarks
+    from t2bs.face.landmarks import Landmarks
 
     if not path.exists():
         print("no landmarks/landmarks.json yet: detecting them (t2bs landmarks DIR --show to check)")
@@ -129,9 +129,9 @@ def retarget_command(
     from t2bs.geometry.camera import frontal_camera
     from t2bs.geometry.io import save_mesh
     from t2bs.render.mesh_renderer import MeshRenderer
-    from t2bs.retarget.face_tracking import TrackConfig, read_driver, track_face
-    from t2bs.retarget.solve import RetargetSolver
-    from t2bs.retarget.transfer import transfer_motion
+    from t2bs.face.face_tracking import TrackConfig, read_driver, track_face
+    from t2bs.face.solve import RetargetSolver
+    from t2bs.face.transfer import transfer_motion
 
     t0 = time.perf_counter()
     if size < 16 or size > 4096:
@@ -214,8 +214,8 @@ def retarget_from_csv(project_dir: Path, driver: Path, out: Optional[Path] = Non
     from t2bs.geometry.io import save_mesh
     from t2bs.project import atomic_path
     from t2bs.render.mesh_renderer import MeshRenderer
-    from t2bs.retarget.arkit import load_arkit_shapes
-    from t2bs.retarget.livelink import head_rotations, read_livelink_csv
+    from t2bs.face.arkit import load_arkit_shapes
+    from t2bs.face.livelink import head_rotations, read_livelink_csv
 
     t0 = time.perf_counter()
     project, mesh = _load_character(project_dir)

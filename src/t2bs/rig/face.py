@@ -7,7 +7,7 @@ Sources, first that works:
 1. ``--landmarks FILE``: ``{"vertex_ids": [20 ints]}`` (what ``t2bs landmarks`` writes and reads
    with ``--override``), optionally with named vertex ids (NAMED_POINTS) at the top level or
    under ``"named"``. A user's file beats any guess, so it is tried first.
-2. Part labels (procedural characters): ``t2bs.retarget.landmarks`` with the ``parts`` backend.
+2. Part labels (procedural characters): ``t2bs.face.landmarks`` with the ``parts`` backend.
 3. MediaPipe face mesh on the frontal render (humanoid faces, also most cartoon faces with two
    eyes and a mouth): the 20 points and the brows / chin, lifted to the nearest visible vertex.
    Where the mesh has separate eyeball parts, the eye points come from them instead (the skin
@@ -148,7 +148,7 @@ def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], s
     """MediaPipe face mesh on the frontal render -> (ids [20], named ids, the 20 points [20, 2] in pixels);
     a reason string when it finds nothing."""
     from t2bs.geometry.camera import frontal_camera
-    from t2bs.retarget.face_tracking import MEDIAPIPE_20, mediapipe_available, run_face_mesh
+    from t2bs.face.face_tracking import MEDIAPIPE_20, mediapipe_available, run_face_mesh
 
     if not mediapipe_available():
         return "MediaPipe is not installed (scripts/setup.sh)"
@@ -210,7 +210,7 @@ def eyes_from_parts(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size:
     surface just outside what the frontal camera sees of each part (as the parts backend does with
     labelled eyes). None when a part is not seen from the front."""
     from t2bs.geometry.camera import frontal_camera
-    from t2bs.retarget.landmarks import EYE_ANGLES, contour_points, largest_component, lift_points
+    from t2bs.face.landmarks import EYE_ANGLES, contour_points, largest_component, lift_points
 
     cam = frontal_camera(size)
     fid = renderer.render(mesh, cam, shading="unlit").face_id
@@ -236,7 +236,7 @@ def find_face(mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use
         ids, named = read_landmarks_file(landmarks_file, mesh.num_vertices)
         return FaceLandmarks(ids, "file", named, eyeballs)
     from t2bs.render.mesh_renderer import MeshRenderer
-    from t2bs.retarget.landmarks import detect_landmarks, has_part_labels
+    from t2bs.face.landmarks import detect_landmarks, has_part_labels
 
     own = renderer is None
     renderer = renderer or MeshRenderer()

@@ -122,7 +122,7 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
         raise UserError(f"{path}: model has {model.num_vertices} vertices but the character mesh has {n}")
     shapes: list[Shape] = []
     # ARKit shapes first (the names capture apps and engines speak), grouped like Apple's list.
-    from t2bs.retarget.arkit import ARKIT_GROUP_OF, load_arkit_shapes
+    from t2bs.face.arkit import ARKIT_GROUP_OF, load_arkit_shapes
 
     arkit = load_arkit_shapes(root / "blendshapes" / "arkit.json", model.num_components)
     if arkit is not None and arkit.names:
@@ -545,7 +545,7 @@ class ViewerApp:
             if not self.shapes:
                 gui.add_markdown("No blendshapes (run `t2bs blendshapes DIR`).")
             self._sliders: list = [None] * len(self.shapes)  # slider i drives shape i
-            from t2bs.retarget.arkit import ARKIT_GROUPS
+            from t2bs.face.arkit import ARKIT_GROUPS
 
             arkit = [(i, s) for i, s in enumerate(self.shapes) if s.group.startswith("arkit/")]
             if arkit:

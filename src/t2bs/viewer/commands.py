@@ -10,7 +10,8 @@ from pathlib import Path
 
 import typer
 
-from t2bs.errors import UserError, exit_on_user_error
+from t2bs.cli.exits import exit_on_user_error
+from t2bs.errors import UserError
 
 
 def exposure_warning(host: str) -> str | None:

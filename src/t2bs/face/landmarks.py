@@ -38,7 +38,7 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.geometry.camera import Camera, frontal_camera
 from t2bs.geometry.mesh import Mesh
-from t2bs.retarget.face_tracking import LANDMARKS_68
+from t2bs.face.face_tracking import LANDMARKS_68
 
 EYE_ANGLES = [180.0, 120.0, 60.0, 0.0, -60.0, -120.0]  # degrees, ellipse-normalised, y up
 MOUTH_ANGLES = [180.0, 135.0, 90.0, 45.0, 0.0, -45.0, -90.0, -135.0]
@@ -447,7 +447,7 @@ def detect_landmarks(mesh: Mesh, backend: str = "auto", model=None, size: int = 
             regions = regions_from_motion(mesh, camera, renderer, motion_shapes(mesh, model))
         else:
             if segmenter is None:
-                from t2bs.retarget.grounding_sam import GroundingSamSegmenter
+                from t2bs.face.grounding_sam import GroundingSamSegmenter
 
                 segmenter = GroundingSamSegmenter.from_pretrained()
             regions = regions_from_image(mesh, camera, renderer, segmenter)
@@ -501,7 +501,7 @@ def landmarks_from_override(data: dict, mesh: Mesh, size: int = 512) -> Landmark
 def overlay_image(mesh: Mesh, lm: Landmarks, regions: dict[str, Region] | None = None, renderer=None) -> np.ndarray:
     """[H, W, 3] uint8: frontal render, region tints, contour points (x) and lifted vertices (dots)."""
     from t2bs.render.mesh_renderer import MeshRenderer
-    from t2bs.retarget.face_tracking import draw_points
+    from t2bs.face.face_tracking import draw_points
 
     own = renderer is None
     renderer = renderer or MeshRenderer()

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t2bs.retarget.face_tracking import EYE_CORNERS, EYE_LID_PAIRS, LEFT_EYE, MOUTH, MOUTH_CORNERS, RIGHT_EYE, FaceTrack
+from t2bs.face.face_tracking import EYE_CORNERS, EYE_LID_PAIRS, LEFT_EYE, MOUTH, MOUTH_CORNERS, RIGHT_EYE, FaceTrack
 
 
 @dataclass

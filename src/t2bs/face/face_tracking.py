@@ -321,7 +321,7 @@ def draw_points(image: np.ndarray, points: np.ndarray, color=(255, 0, 0), radius
     return out
 
 
-if __name__ == "__main__":  # pragma: no cover - manual check: python -m t2bs.retarget.face_tracking IMAGE
+if __name__ == "__main__":  # pragma: no cover - manual check: python -m t2bs.face.face_tracking IMAGE
     from PIL import Image
 
     img = np.asarray(Image.open(sys.argv[1]).convert("RGB"))

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from t2bs.geometry.mesh import weld_index, welded_edges
-from t2bs.retarget.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
+from t2bs.face.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
 
 
 @dataclass

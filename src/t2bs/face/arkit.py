@@ -93,7 +93,7 @@ class ArkitShapes:
 
     def to_dict(self) -> dict:
         return {"names": self.names, "weights": np.round(self.weights, 7).tolist(), "report": self.report,
-                "reference": "ICT-FaceKit (MIT), see t2bs/retarget/data/arkit_landmarks.json"}
+                "reference": "ICT-FaceKit (MIT), see t2bs/face/data/arkit_landmarks.json"}
 
     @staticmethod
     def from_dict(d: dict, num_components: int) -> "ArkitShapes":
@@ -111,7 +111,7 @@ def load_reference(path: Path = REFERENCE) -> tuple[np.ndarray, dict[str, np.nda
 
 def _reference_track(neutral: np.ndarray, disp: np.ndarray):
     """A two-frame FaceTrack (neutral, shape) in the tracker's convention: x right, y down."""
-    from t2bs.retarget.face_tracking import FaceTrack
+    from t2bs.face.face_tracking import FaceTrack
 
     pts = np.stack([neutral, neutral + disp]) * np.array([1.0, -1.0, 1.0])  # [2, 20, 3], Y up -> image y down
     return FaceTrack(points=pts, image_points=pts[..., :2], found=np.ones(2, bool), neutral=0, fps=1.0)
@@ -119,8 +119,8 @@ def _reference_track(neutral: np.ndarray, disp: np.ndarray):
 
 def reference_motion(neutral: np.ndarray, disp: np.ndarray) -> float:
     """Largest frontal-plane landmark motion of a reference shape, as a fraction of its region's width."""
-    from t2bs.retarget.face_tracking import LEFT_EYE, MOUTH, RIGHT_EYE
-    from t2bs.retarget.transfer import region_sizes
+    from t2bs.face.face_tracking import LEFT_EYE, MOUTH, RIGHT_EYE
+    from t2bs.face.transfer import region_sizes
 
     sizes = region_sizes(neutral, y_up=True)
     out = 0.0
@@ -160,8 +160,8 @@ def derive_arkit_shapes(neutral: np.ndarray, basis: np.ndarray, singular_values:
     ``landmark_ids`` [20]: the character's retargeting landmarks (``t2bs landmarks``); ``eyeballs``
     and ``mouth_width`` as the landmark stage found them (see ``transfer_motion``).
     """
-    from t2bs.retarget.solve import RetargetSolver, SolveConfig
-    from t2bs.retarget.transfer import TransferConfig, transfer_motion
+    from t2bs.face.solve import RetargetSolver, SolveConfig
+    from t2bs.face.transfer import TransferConfig, transfer_motion
 
     neutral = np.asarray(neutral, np.float64)
     basis = np.asarray(basis, np.float64)
@@ -220,7 +220,7 @@ def project_arkit_shapes(project_root: Path, model, character, config: ArkitConf
     """ARKit shapes of a project's model: its landmarks (landmarks/landmarks.json, detected and written
     when absent; UserError when the character has none) -> ``derive_arkit_shapes``."""
     from t2bs.project import read_json
-    from t2bs.retarget.landmarks import Landmarks
+    from t2bs.face.landmarks import Landmarks
 
     path = Path(project_root) / "landmarks" / "landmarks.json"
     if path.exists():

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from t2bs.errors import UserError
-from t2bs.retarget.arkit import ARKIT_NAMES, arkit_name
+from t2bs.face.arkit import ARKIT_NAMES, arkit_name
 
 HEAD_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll")
 EYE_COLUMNS = ("LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll", "RightEyeYaw", "RightEyePitch", "RightEyeRoll")

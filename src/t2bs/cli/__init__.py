@@ -10,7 +10,8 @@ import sys
 
 import typer
 
-from t2bs.errors import INTERRUPTED, exit_on_user_error
+from t2bs.cli.exits import exit_on_user_error
+from t2bs.errors import INTERRUPTED
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Text or any character mesh -> animatable blendshape rig (T2Bs).")
