@@ -37,22 +37,40 @@ def run(asset: Path = ASSET) -> dict:
     truth = {arkit_name(n): d.astype(np.float64) for n, d in mesh.morph_targets.items() if arkit_name(n)}
     model = morph_model(mesh)
     lm, _ = detect_landmarks(mesh, "motion", model=model)
-    shapes = derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
-                                 lm.regions.get("mouth", {}).get("width_world"))
+    shapes = derive_arkit_shapes(
+        model.neutral,
+        model.basis,
+        model.singular_values,
+        mesh.faces,
+        lm.vertex_ids,
+        lm.eyeballs,
+        lm.regions.get("mouth", {}).get("width_world"),
+    )
     rows = []
     for name, w in zip(shapes.names, shapes.weights):
         derived = model.offsets(w).reshape(-1)
         true = truth[name].reshape(-1)
         cos = float(derived @ true / max(np.linalg.norm(derived) * np.linalg.norm(true), 1e-30))
         scale = float(derived @ true / max(true @ true, 1e-30))  # least-squares strength vs the true shape
-        rows.append({"shape": name, "cosine": round(cos, 4), "strength": round(scale, 3),
-                     "landmark_cosine": shapes.report[name]["cosine"]})
+        rows.append(
+            {
+                "shape": name,
+                "cosine": round(cos, 4),
+                "strength": round(scale, 3),
+                "landmark_cosine": shapes.report[name]["cosine"],
+            }
+        )
     cosines = np.array([r["cosine"] for r in rows])
     worst = rows[int(cosines.argmin())] if rows else None
     return {
-        "asset": asset.name, "present": len(shapes.names), "of": 52, "summary": summary(shapes),
+        "asset": asset.name,
+        "present": len(shapes.names),
+        "of": 52,
+        "summary": summary(shapes),
         "cosine_median": round(float(np.median(cosines)), 4) if rows else None,
-        "cosine_worst": worst, "landmarks_backend": lm.backend, "rows": rows,
+        "cosine_worst": worst,
+        "landmarks_backend": lm.backend,
+        "rows": rows,
         "absent": {n: r["why"] for n, r in shapes.report.items() if not r["present"]},
         "seconds": round(time.perf_counter() - t0, 2),
     }

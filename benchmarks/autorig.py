@@ -38,23 +38,50 @@ SHARED = shared_assets_dir()
 # under one tuple), auto-rig shapes summed). Targets of issue 34: cos >= 0.7 jaw / blinks, >= 0.5 smiles.
 COMPARISONS: dict[str, tuple[list, list[str]]] = {
     "jawOpen": ([("jawOpen",), ("mouthOpen",), ("jaw_open",), ("a",), ("aa",)], ["jawOpen"]),
-    "eyeBlinkLeft": ([("eyeBlink_L",), ("eyeBlinkLeft",), ("eyeLeftClose",), ("blink_l",), ("blink_left",), ("blinkLeft",)], ["eyeBlinkLeft"]),
-    "eyeBlinkRight": ([("eyeBlink_R",), ("eyeBlinkRight",), ("eyeRightClose",), ("blink_r",), ("blink_right",), ("blinkRight",)], ["eyeBlinkRight"]),
+    "eyeBlinkLeft": (
+        [("eyeBlink_L",), ("eyeBlinkLeft",), ("eyeLeftClose",), ("blink_l",), ("blink_left",), ("blinkLeft",)],
+        ["eyeBlinkLeft"],
+    ),
+    "eyeBlinkRight": (
+        [("eyeBlink_R",), ("eyeBlinkRight",), ("eyeRightClose",), ("blink_r",), ("blink_right",), ("blinkRight",)],
+        ["eyeBlinkRight"],
+    ),
     "mouthSmileLeft": ([("mouthSmile_L",), ("mouthSmileLeft",), ("smileLeft",)], ["mouthSmileLeft"]),
     "mouthSmileRight": ([("mouthSmile_R",), ("mouthSmileRight",), ("smileRight",)], ["mouthSmileRight"]),
     # VRM's fun / joy are whole expressions (brows, closed eyes, open mouth), not a smile: no match.
-    "smile (both sides)": ([("mouthSmile_L", "mouthSmile_R"), ("smileLeft", "smileRight"), ("smile",)],
-                           ["mouthSmileLeft", "mouthSmileRight"]),
-    "brows up": ([("browInnerUp", "browOuterUp_L", "browOuterUp_R"), ("eyeBrowLeftUp", "eyeBrowRightUp"), ("brow_up",)],
-                 ["browInnerUp", "browOuterUpLeft", "browOuterUpRight"]),
-    "brows down": ([("browDown_L", "browDown_R"), ("eyeBrowLeftDown", "eyeBrowRightDown")], ["browDownLeft", "browDownRight"]),
+    "smile (both sides)": (
+        [("mouthSmile_L", "mouthSmile_R"), ("smileLeft", "smileRight"), ("smile",)],
+        ["mouthSmileLeft", "mouthSmileRight"],
+    ),
+    "brows up": (
+        [("browInnerUp", "browOuterUp_L", "browOuterUp_R"), ("eyeBrowLeftUp", "eyeBrowRightUp"), ("brow_up",)],
+        ["browInnerUp", "browOuterUpLeft", "browOuterUpRight"],
+    ),
+    "brows down": (
+        [("browDown_L", "browDown_R"), ("eyeBrowLeftDown", "eyeBrowRightDown")],
+        ["browDownLeft", "browDownRight"],
+    ),
 }
-TARGETS = {"jawOpen": 0.7, "eyeBlinkLeft": 0.7, "eyeBlinkRight": 0.7, "mouthSmileLeft": 0.5, "mouthSmileRight": 0.5,
-           "smile (both sides)": 0.5}
-SIDE_PAIRS = [("eyeBlink_L", "eyeBlink_R"), ("eyeLeftClose", "eyeRightClose"), ("blink_l", "blink_r"),
-              ("blink_left", "blink_right"), ("mouthSmile_L", "mouthSmile_R"), ("smileLeft", "smileRight"),
-              ("browOuterUp_L", "browOuterUp_R"), ("eyeBrowLeftUp", "eyeBrowRightUp"),
-              ("eyeBrowLeftDown", "eyeBrowRightDown"), ("browDown_L", "browDown_R")]
+TARGETS = {
+    "jawOpen": 0.7,
+    "eyeBlinkLeft": 0.7,
+    "eyeBlinkRight": 0.7,
+    "mouthSmileLeft": 0.5,
+    "mouthSmileRight": 0.5,
+    "smile (both sides)": 0.5,
+}
+SIDE_PAIRS = [
+    ("eyeBlink_L", "eyeBlink_R"),
+    ("eyeLeftClose", "eyeRightClose"),
+    ("blink_l", "blink_r"),
+    ("blink_left", "blink_right"),
+    ("mouthSmile_L", "mouthSmile_R"),
+    ("smileLeft", "smileRight"),
+    ("browOuterUp_L", "browOuterUp_R"),
+    ("eyeBrowLeftUp", "eyeBrowRightUp"),
+    ("eyeBrowLeftDown", "eyeBrowRightDown"),
+    ("browDown_L", "browDown_R"),
+]
 
 
 def load(spec: str):
@@ -63,7 +90,7 @@ def load(spec: str):
         from t2bs.character.procedural import generate_procedural
 
         return spec, generate_procedural(f"a {spec.split(':', 1)[1]}", seed=0).mesh
-    from t2bs.commands_render import canonical_character
+    from t2bs.character.render_stage import canonical_character
 
     mesh, _ = canonical_character(SHARED / f"{spec}.glb")
     return spec, mesh
@@ -90,8 +117,12 @@ def compare(a: np.ndarray, b: np.ndarray, diag: float) -> dict:
         return {"cos": 0.0, "p2p": float(np.linalg.norm(b, axis=1).mean() / diag * 1e3), "rel": 1.0, "scale": 0.0}
     s = float(a64 @ b64 / (na * na))
     d = np.linalg.norm(s * a.astype(np.float64) - b, axis=1)
-    return {"cos": float(a64 @ b64 / (na * nb)), "p2p": float(d.mean() / diag * 1e3),
-            "rel": float(d.sum() / np.linalg.norm(b, axis=1).sum()), "scale": s}
+    return {
+        "cos": float(a64 @ b64 / (na * nb)),
+        "p2p": float(d.mean() / diag * 1e3),
+        "rel": float(d.sum() / np.linalg.norm(b, axis=1).sum()),
+        "scale": s,
+    }
 
 
 def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, object, object]:
@@ -108,8 +139,12 @@ def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, 
         from t2bs.face.landmarks import detect_landmarks
 
         lm, _ = detect_landmarks(mesh, backend="motion", renderer=renderer)
-        face = FaceLandmarks(np.asarray(lm.vertex_ids, np.int64), "file (t2bs landmarks on the rigged asset)", {},
-                             find_eyeballs(stripped))
+        face = FaceLandmarks(
+            np.asarray(lm.vertex_ids, np.int64),
+            "file (t2bs landmarks on the rigged asset)",
+            {},
+            find_eyeballs(stripped),
+        )
         name = f"{name} (user landmarks)"
     else:
         face = find_face(stripped, renderer=renderer, source_name=name)
@@ -125,10 +160,19 @@ def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, 
         b = sum(ref[n] for n in hit)
         a = sum(rig.morph_targets[n] for n in auto)
         rows[comp] = {"reference": "+".join(hit), **compare(a, b, diag)}
-    out = {"asset": name, "vertices": mesh.num_vertices, "landmarks": face.source, "eyeball_parts": sorted(face.eyeballs),
-           "shapes": len(rig.morph_targets), "missing": rig.missing, "mouth": rig.info.get("mouth"),
-           "reference_sides_swapped": swapped, "seconds_landmarks": round(t1 - t0, 2), "seconds_rig": round(t2 - t1, 2),
-           "comparisons": rows}
+    out = {
+        "asset": name,
+        "vertices": mesh.num_vertices,
+        "landmarks": face.source,
+        "eyeball_parts": sorted(face.eyeballs),
+        "shapes": len(rig.morph_targets),
+        "missing": rig.missing,
+        "mouth": rig.info.get("mouth"),
+        "reference_sides_swapped": swapped,
+        "seconds_landmarks": round(t1 - t0, 2),
+        "seconds_rig": round(t2 - t1, 2),
+        "comparisons": rows,
+    }
     return out, (mesh, ref), rig
 
 
@@ -137,7 +181,11 @@ def sheet(items, renderer, path: Path, size: int = 200) -> None:
     from t2bs.geometry.camera import frontal_camera
     from t2bs.project import write_image
 
-    cols = [("jawOpen", ["jawOpen"]), ("eyeBlinkLeft", ["eyeBlinkLeft"]), ("smile (both sides)", ["mouthSmileLeft", "mouthSmileRight"])]
+    cols = [
+        ("jawOpen", ["jawOpen"]),
+        ("eyeBlinkLeft", ["eyeBlinkLeft"]),
+        ("smile (both sides)", ["mouthSmileLeft", "mouthSmileRight"]),
+    ]
     cam = frontal_camera(size)
     rows = []
     for res, (mesh, ref), rig in items:
@@ -147,7 +195,9 @@ def sheet(items, renderer, path: Path, size: int = 200) -> None:
             refd = sum(ref[n] for n in row["reference"].split("+")) if row else np.zeros_like(mesh.vertices)
             autod = sum(rig.morph_targets[n] for n in auto if n in rig.morph_targets)
             tiles.append(renderer.render(mesh, cam, vertices=mesh.vertices + refd, shading="lambert").rgb)
-            tiles.append(renderer.render(mesh, cam, vertices=(mesh.vertices + autod).astype(np.float32), shading="lambert").rgb)
+            tiles.append(
+                renderer.render(mesh, cam, vertices=(mesh.vertices + autod).astype(np.float32), shading="lambert").rgb
+            )
         rows.append(np.concatenate(tiles, axis=1))
     img = (np.clip(np.concatenate(rows, axis=0), 0, 1) * 255).astype(np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -163,8 +213,11 @@ def markdown(results: list[dict]) -> str:
             row = r["comparisons"].get(c)
             cells.append("-" if row is None else f"{row['cos']:.2f} / {row['p2p']:.1f}")
         lines.append(f"| {r['asset']} | {r['landmarks']} | {r['shapes']} | " + " | ".join(cells) + " |")
-    lines += ["", "Cells: cosine of the displacement fields / p2p after the best scale (thousandths of the bounding-box "
-              "diagonal). Targets (issue 34): cosine >= 0.7 on jaw and blinks, >= 0.5 on smiles."]
+    lines += [
+        "",
+        "Cells: cosine of the displacement fields / p2p after the best scale (thousandths of the bounding-box "
+        "diagonal). Targets (issue 34): cosine >= 0.7 on jaw and blinks, >= 0.5 on smiles.",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -172,8 +225,12 @@ def main(
     assets: str = typer.Option("turtle,facecap,vipe_hero_head", help="Shared assets (comma list)."),
     procedural: str = typer.Option("fox,human,frog,robot", help="Procedural archetypes (comma list, '' for none)."),
     out: Path = typer.Option(Path("benchmarks/results/autorig"), help="Output stem: OUT.json and OUT.md."),
-    sheet_path: Path = typer.Option(None, "--sheet", help="Also write a contact sheet PNG (reference / auto per shape)."),
-    user_landmarks: str = typer.Option("turtle", help="Assets also run with a user's landmarks file (comma list, '' for none)."),
+    sheet_path: Path = typer.Option(
+        None, "--sheet", help="Also write a contact sheet PNG (reference / auto per shape)."
+    ),
+    user_landmarks: str = typer.Option(
+        "turtle", help="Assets also run with a user's landmarks file (comma list, '' for none)."
+    ),
 ) -> None:
     from t2bs.project import write_json
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -186,12 +243,21 @@ def main(
             res, ref, rig = bench_one(spec, renderer, user)
             results.append(res)
             items.append((res, ref, rig))
-            print(json.dumps({k: res[k] for k in ("asset", "landmarks", "shapes")}
-                             | {c: round(v["cos"], 3) for c, v in res["comparisons"].items()}), flush=True)
+            print(
+                json.dumps(
+                    {k: res[k] for k in ("asset", "landmarks", "shapes")}
+                    | {c: round(v["cos"], 3) for c, v in res["comparisons"].items()}
+                ),
+                flush=True,
+            )
         if sheet_path is not None:
             sheet(items, renderer, sheet_path)
-    fails = [f"{r['asset']} {c}" for r in results for c, t in TARGETS.items()
-             if c in r["comparisons"] and r["comparisons"][c]["cos"] < t]
+    fails = [
+        f"{r['asset']} {c}"
+        for r in results
+        for c, t in TARGETS.items()
+        if c in r["comparisons"] and r["comparisons"][c]["cos"] < t
+    ]
     report = {"results": results, "targets": TARGETS, "below_target": fails}
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out.with_suffix(".json"), report)

@@ -31,7 +31,9 @@ def peak_frames(displacements: np.ndarray, count: int) -> list[int]:
     return sorted(int(t) for t in np.argsort(disp)[::-1][:count])
 
 
-def _crop_box(rest: np.ndarray, displacements: np.ndarray, camera, size: int, margin: float = 0.5) -> tuple[int, int, int, int]:
+def _crop_box(
+    rest: np.ndarray, displacements: np.ndarray, camera, size: int, margin: float = 0.5
+) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) pixels around the vertices whose non-rigid motion ``displacements`` [T, N, 3] exceeds 0.5 % of
     the diagonal, a square."""
     from t2bs.geometry.mesh import bbox_diagonal
@@ -85,22 +87,32 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
             if gt is not None:
                 tiles.append(renderer.render(mesh, cam, vertices=gt[t], shading=shading).rgb)
             x0, y0, x1, y1 = box
-            tiles = [np.asarray(Image.fromarray((np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)[y0:y1, x0:x1]).resize((size, size)))
-                     for x in tiles]
+            tiles = [
+                np.asarray(
+                    Image.fromarray((np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)[y0:y1, x0:x1]).resize((size, size))
+                )
+                for x in tiles
+            ]
             rows.append(np.concatenate(tiles, axis=1))
     sheet = np.concatenate(rows, axis=0)
     path = out_dir / "expression_view.png"
     with atomic_path(path) as tmp:
         Image.fromarray(sheet).save(tmp, format="PNG")
-    info = {"video": video, "file": str(path), "frames": frames,
-            "columns": ["input", "trained Gaussians", "extracted mesh"] + (["ground truth"] if gt is not None else [])}
+    info = {
+        "video": video,
+        "file": str(path),
+        "frames": frames,
+        "columns": ["input", "trained Gaussians", "extracted mesh"] + (["ground truth"] if gt is not None else []),
+    }
     if gt is not None:
         info["expression"] = {k: round(v, 5) for k, v in expression_metrics(verts, gt, mesh.vertices).items()}
     return info
 
 
 def main(
-    project_dir: Path = typer.Argument(..., help="Project folder with finished reconstructions (recon/<video>/state.pt)."),
+    project_dir: Path = typer.Argument(
+        ..., help="Project folder with finished reconstructions (recon/<video>/state.pt)."
+    ),
     videos: list[str] = typer.Argument(None, help="Video ids (default: every finished reconstruction)."),
     size: int = typer.Option(256, help="Tile size in pixels."),
     peaks: int = typer.Option(2, help="Peak frames shown per video."),
@@ -108,7 +120,11 @@ def main(
 ) -> None:
     """Input | trained Gaussians | extracted mesh | ground truth at the peak frames of each video."""
     recon = project_dir / "recon"
-    names = list(videos) if videos else sorted(p.parent.name for p in recon.glob("*/state.pt") if (p.parent / "done.json").exists())
+    names = (
+        list(videos)
+        if videos
+        else sorted(p.parent.name for p in recon.glob("*/state.pt") if (p.parent / "done.json").exists())
+    )
     if not names:
         raise UserError(f"{project_dir}: no finished reconstructions in recon/ (run `t2bs reconstruct {project_dir}`)")
     for name in names:

@@ -59,10 +59,10 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
         res = reconstruct_grid(mesh, grid, cfg, progress=False)
         gt, rec, data = grid.gt_vertices, res.vertices, res.data
         seen = rest_visibility(mesh, data.cameras, data.train_views).any(0)
-        parts = hidden_parts(mesh, seen, cfg.hidden_pick_min_vertices)
+        parts = hidden_parts(mesh, seen, cfg.hidden_parts.hidden_pick_min_vertices)
         if not parts:
             raise UserError(f"{name}: no hidden part (every part is seen at rest), nothing to probe")
-        views = compare_views(data.cameras, data.canonical_view, data.train_views, cfg.hidden_pick_views)
+        views = compare_views(data.cameras, data.canonical_view, data.train_views, cfg.hidden_parts.hidden_pick_views)
         frames = list(range(1, data.frames, 2))
         images = data.images.cpu().numpy()
 
@@ -76,17 +76,36 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
 
         def descent(verts: np.ndarray) -> tuple[dict, list[list[int]]]:
             """The pick (pick_hidden_motions) from ``verts``, and its groups (part indices)."""
-            picked, report = pick_hidden_motions(mesh, verts, seen, images, data.cameras, views, frames, data.shading,
-                                                 cfg.hidden_pick_clusters, cfg.hidden_pick_min_vertices, seed,
-                                                 renderer=renderer, sweeps=sweeps)
-            return {"loss_before_1e5": round(report.loss_before * 1e5, 2), "loss_1e5": round(report.loss_after * 1e5, 2),
-                    "ratio_before": round(score(verts), 4), "ratio": round(score(picked), 4), "sweeps": report.sweeps,
-                    "moved": int(sum(p >= 0 for p in report.picks))}, report.groups
+            picked, report = pick_hidden_motions(
+                mesh,
+                verts,
+                seen,
+                images,
+                data.cameras,
+                views,
+                frames,
+                data.shading,
+                cfg.hidden_parts.hidden_pick_clusters,
+                cfg.hidden_parts.hidden_pick_min_vertices,
+                seed,
+                renderer=renderer,
+                sweeps=sweeps,
+            )
+            return {
+                "loss_before_1e5": round(report.loss_before * 1e5, 2),
+                "loss_1e5": round(report.loss_after * 1e5, 2),
+                "ratio_before": round(score(verts), 4),
+                "ratio": round(score(picked), 4),
+                "sweeps": report.sweeps,
+                "moved": int(sum(p >= 0 for p in report.picks)),
+            }, report.groups
 
-        rots, trans = cluster_motions(rest, rec, seen, cfg.hidden_pick_clusters, seed)
+        rots, trans = cluster_motions(rest, rec, seen, cfg.hidden_parts.hidden_pick_clusters, seed)
         cand = [[apply_motion(rots[c], trans[c], rest[ix]) for c in range(len(rots))] for ix in parts]
-        oracle = [int(np.argmin([np.linalg.norm(m - gt[:, ix], axis=-1).mean() for m in cand[p]]))
-                  for p, ix in enumerate(parts)]
+        oracle = [
+            int(np.argmin([np.linalg.norm(m - gt[:, ix], axis=-1).mean() for m in cand[p]]))
+            for p, ix in enumerate(parts)
+        ]
         # joint over the largest groups (by vertex count); parts of the others keep their own motion
         size = {g: sum(len(ix) for ix, o in zip(parts, oracle) if o == g) for g in set(oracle)}
         groups = sorted(sorted(size, key=size.get, reverse=True)[:max_groups])
@@ -97,8 +116,13 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
                 c = choice[groups.index(oracle[p])] if oracle[p] in groups else -1
                 if c >= 0:
                     verts[:, ix] = cand[p][c]
-            joint.append({"assignment": dict(zip(map(str, groups), choice)), "loss_1e5": round(loss(verts) * 1e5, 2),
-                          "ratio": round(score(verts), 4)})
+            joint.append(
+                {
+                    "assignment": dict(zip(map(str, groups), choice)),
+                    "loss_1e5": round(loss(verts) * 1e5, 2),
+                    "ratio": round(score(verts), 4),
+                }
+            )
         joint.sort(key=lambda r: r["loss_1e5"])
         truth = {str(g): g for g in groups}
         hidden = np.zeros(len(rest), bool)
@@ -107,10 +131,14 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
         gt_face = rec.copy()
         gt_face[:, ~hidden] = gt[:, ~hidden]
         out = {
-            "asset": name, "prompt": prompt, "seed": seed, "recon_ratio": round(score(rec), 4),
+            "asset": name,
+            "prompt": prompt,
+            "seed": seed,
+            "recon_ratio": round(score(rec), 4),
             "hidden_parts": len(parts),
             "groups": {str(g): {"parts": sum(o == g for o in oracle), "vertices": int(size[g])} for g in sorted(size)},
-            "joint": joint, "truth_rank": next(i for i, r in enumerate(joint) if r["assignment"] == truth),
+            "joint": joint,
+            "truth_rank": next(i for i, r in enumerate(joint) if r["assignment"] == truth),
         }
         out["descent"], pick_groups = descent(rec)
         out["descent_gt_face"], _ = descent(gt_face)
@@ -119,10 +147,14 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
     return out
 
 
-def main(asset: str = typer.Option("facecap", help="Asset with hidden parts (a shared asset name or a glb path)."),
-         prompt: str = typer.Option("opening the mouth extremely wide", help="Expression prompt."),
-         sweeps: int = typer.Option(4, help="Most coordinate-descent sweeps over the pick's groups (4: what hidden_pick does)."),
-         seed: int = typer.Option(0, help="Reconstruction and k-means seed.")) -> None:
+def main(
+    asset: str = typer.Option("facecap", help="Asset with hidden parts (a shared asset name or a glb path)."),
+    prompt: str = typer.Option("opening the mouth extremely wide", help="Expression prompt."),
+    sweeps: int = typer.Option(
+        4, help="Most coordinate-descent sweeps over the pick's groups (4: what hidden_pick does)."
+    ),
+    seed: int = typer.Option(0, help="Reconstruction and k-means seed."),
+) -> None:
     result = probe(asset, prompt, sweeps, seed)
     for r in result["joint"]:
         print(f"joint {r['assignment']}: loss {r['loss_1e5']:.2f} ratio {r['ratio']:.4f}")
@@ -130,8 +162,10 @@ def main(asset: str = typer.Option("facecap", help="Asset with hidden parts (a s
         print(f"pick group of {len(g)} parts, by oracle group: {dict(Counter(g))}")
     for key in ("descent", "descent_gt_face"):
         r = result[key]
-        print(f"{key}: ratio {r['ratio_before']:.4f} -> {r['ratio']:.4f}, loss {r['loss_before_1e5']:.2f} -> "
-              f"{r['loss_1e5']:.2f} in {r['sweeps']} sweeps, {r['moved']} parts moved")
+        print(
+            f"{key}: ratio {r['ratio_before']:.4f} -> {r['ratio']:.4f}, loss {r['loss_before_1e5']:.2f} -> "
+            f"{r['loss_1e5']:.2f} in {r['sweeps']} sweeps, {r['moved']} parts moved"
+        )
     print(json.dumps(result))
 
 

@@ -22,7 +22,7 @@ python3 - "$P" "$WORK/pwned-checkpoint" <<'EOF'
 import os, sys, torch
 from pathlib import Path
 from t2bs.project import Project
-from t2bs.recon.commands import recon_job
+from t2bs.recon.stage import recon_job
 from t2bs.recon.config import preset
 cfg = preset("quick", iterations=4, global_iters=0, num_control_points=8, resolution=32, static_iters=2,
              perceptual="none", track_weight=0.0, hidden_pick=False, method="full", device="auto", seed=0)

@@ -13,7 +13,7 @@ import statistics
 import time
 from pathlib import Path
 
-from t2bs.commands_render import canonical_character
+from t2bs.character.render_stage import canonical_character
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.render.mesh_renderer import MeshRenderer
 from t2bs.shared_assets import shared_asset
@@ -36,9 +36,20 @@ def main() -> None:
             t0 = time.perf_counter()
             renderer.render(mesh, cams[i % len(cams)])
             times.append((time.perf_counter() - t0) * 1000)
-    print(json.dumps({"asset": args.asset.name, "vertices": mesh.num_vertices, "faces": int(mesh.faces.shape[0]),
-                      "size": args.size, "frames": args.frames, "ms_per_frame_median": round(statistics.median(times), 2),
-                      "ms_per_frame_min": round(min(times), 2), "load_average_1m": round(os.getloadavg()[0], 2)}))
+    print(
+        json.dumps(
+            {
+                "asset": args.asset.name,
+                "vertices": mesh.num_vertices,
+                "faces": int(mesh.faces.shape[0]),
+                "size": args.size,
+                "frames": args.frames,
+                "ms_per_frame_median": round(statistics.median(times), 2),
+                "ms_per_frame_min": round(min(times), 2),
+                "load_average_1m": round(os.getloadavg()[0], 2),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

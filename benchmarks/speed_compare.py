@@ -26,42 +26,78 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-CASES = ("facecap|smiling", "facecap|opening the mouth extremely wide",
-         "procedural:a cartoon fox with big ears|opening the mouth extremely wide")
+CASES = (
+    "facecap|smiling",
+    "facecap|opening the mouth extremely wide",
+    "procedural:a cartoon fox with big ears|opening the mouth extremely wide",
+)
 
 
 def _run(checkout: Path, asset: str, prompt: str, options: list[str], env: dict, log) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "rows.json"
-        cmd = [sys.executable, str(checkout / "benchmarks" / "vcdgs.py"), "--asset", asset, "--prompts", prompt,
-               "--defects", "clean", "--methods", "full,rigid", "--time-budget", "0", "--json", str(out)]
+        cmd = [
+            sys.executable,
+            str(checkout / "benchmarks" / "vcdgs.py"),
+            "--asset",
+            asset,
+            "--prompts",
+            prompt,
+            "--defects",
+            "clean",
+            "--methods",
+            "full,rigid",
+            "--time-budget",
+            "0",
+            "--json",
+            str(out),
+        ]
         for o in options:
             cmd += ["--set", o]
         t0 = time.time()
-        proc = subprocess.run(cmd, cwd=checkout, env={**os.environ, **env, "PYTHONPATH": str(checkout / "src")},
-                              stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.run(
+            cmd,
+            cwd=checkout,
+            env={**os.environ, **env, "PYTHONPATH": str(checkout / "src")},
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
         wall = time.time() - t0
         if proc.returncode != 0:
             return {"error": f"rc {proc.returncode}", "wall_s": round(wall, 1)}
         rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
     full = rows["full"]
-    return {"seconds": full["seconds"], "wall_s": round(wall, 1), "p2p_moving": full["p2p_moving"],
-            "expr_p2p": full["expr_p2p"], "expr_ratio": full["expr_ratio"], "steps": full.get("steps")}
+    return {
+        "seconds": full["seconds"],
+        "wall_s": round(wall, 1),
+        "p2p_moving": full["p2p_moving"],
+        "expr_p2p": full["expr_p2p"],
+        "expr_ratio": full["expr_ratio"],
+        "steps": full.get("steps"),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--base", required=True, help="the earlier commit (any git revision)")
-    ap.add_argument("--case", action="append", default=[], help="ASSET|PROMPT (repeatable; default: facecap smiling, "
-                    "facecap mouth wide, the demo fox mouth wide)")
+    ap.add_argument(
+        "--case",
+        action="append",
+        default=[],
+        help="ASSET|PROMPT (repeatable; default: facecap smiling, " "facecap mouth wide, the demo fox mouth wide)",
+    )
     ap.add_argument("--variant", action="append", default=[], help="NAME:KEY=VALUE[,KEY=VALUE] run of this checkout")
     ap.add_argument("--json", default="")
     ap.add_argument("--log", default="/tmp/speed_compare.log")
     a = ap.parse_args()
-    sha = subprocess.run(["git", "rev-parse", "--short", a.base], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+    sha = subprocess.run(
+        ["git", "rev-parse", "--short", a.base], cwd=REPO, capture_output=True, text=True, check=True
+    ).stdout.strip()
     base = Path(tempfile.gettempdir()) / f"t2bs-base-{sha}"
     if not base.exists():
-        subprocess.run(["git", "worktree", "add", "--detach", str(base), sha], cwd=REPO, check=True, capture_output=True)
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(base), sha], cwd=REPO, check=True, capture_output=True
+        )
     versions = [(f"base {sha}", base, [], {}), ("this checkout", REPO, [], {})]
     for v in a.variant:
         name, _, opts = v.partition(":")

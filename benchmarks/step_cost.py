@@ -37,8 +37,12 @@ def _args():
     ap.add_argument("--stages", default="warmup,joint", help="which stages to measure: warmup, joint")
     ap.add_argument("--device", default="cpu", help="cpu or cuda")
     ap.add_argument("--profile-steps", type=int, default=10, help="steps counted under the profiler per stage")
-    ap.add_argument("--timed-steps", type=int, default=0, help="steps timed per stage (0: 30 quick / 10 paper on CPU, 200 on CUDA)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="VCDGS option for every preset (repeatable)")
+    ap.add_argument(
+        "--timed-steps", type=int, default=0, help="steps timed per stage (0: 30 quick / 10 paper on CPU, 200 on CUDA)"
+    )
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="VCDGS option for every preset (repeatable)"
+    )
     ap.add_argument("--src", default="", help="a t2bs src/ folder to measure instead of this checkout's")
     ap.add_argument("--json", default="", help="also write the JSON here")
     return ap.parse_args()
@@ -61,26 +65,40 @@ def main() -> None:
     cuda = a.device.startswith("cuda")
     over = {**parse_options(a.set), "static_iters": 0, "device": a.device, "checkpoint_every": 0, "time_budget_s": 0.0}
     name, mesh = load_asset(a.asset)
-    results = {"options": a.set, "t2bs": str(Path(t2bs.__file__).resolve().parents[1]), "asset": name, "prompt": a.prompt,
-               "device": torch.cuda.get_device_name() if cuda else "cpu", "torch": torch.__version__, "presets": {}}
+    results = {
+        "options": a.set,
+        "t2bs": str(Path(t2bs.__file__).resolve().parents[1]),
+        "asset": name,
+        "prompt": a.prompt,
+        "device": torch.cuda.get_device_name() if cuda else "cpu",
+        "torch": torch.__version__,
+        "presets": {},
+    }
     grids = {}
     for pname in a.presets.split(","):
         base = preset(pname)
         cfg = preset(pname, **over)
-        size = base.resolution
+        size = (
+            base.data.resolution if hasattr(base, "data") else base.resolution
+        )  # --src: a checkout before the config tree
         if size not in grids:
             grids[size] = make_grid(mesh, a.prompt, config=GridConfig(frames=16, size=size))
         data = prepare_data(grids[size], cfg)
         v, t, n = data.views, data.frames, mesh.num_vertices
         data.tracks = VertexTracks(torch.zeros(v, t, n, 2), torch.ones(v, t, n), torch.ones(v, n, dtype=torch.bool))
-        torch.manual_seed(cfg.seed)
+        torch.manual_seed(cfg.runtime.seed if hasattr(cfg, "runtime") else cfg.seed)
         model, _ = build_model(mesh, data, cfg)
         timed = a.timed_steps or (200 if cuda else (30 if pname == "quick" else 10))
-        row = {"resolution": size, "gaussians": int(model.means.shape[0] + (0 if model.faces is None else len(model.faces))),
-               "control_points": int(model.cp.shape[0]), "batch_size": cfg.batch_size}
-        for stage, global_iters in (("warmup", 10 ** 6), ("joint", 0)):
+        row = {
+            "resolution": size,
+            "gaussians": int(model.means.shape[0] + (0 if model.faces is None else len(model.faces))),
+            "control_points": int(model.cp.shape[0]),
+            "batch_size": cfg.optim.batch_size if hasattr(cfg, "optim") else cfg.batch_size,
+        }
+        for stage, global_iters in (("warmup", 10**6), ("joint", 0)):
             if stage not in a.stages.split(","):
                 continue
+
             def run(steps: int):
                 # A fresh copy per run: every run starts from the same untrained model.
                 m = copy.deepcopy(model)
@@ -100,14 +118,22 @@ def main() -> None:
                 run(a.profile_steps)
             events = prof.events()
             ops = sum(1 for e in events if e.name.startswith("aten::"))
-            kernels = sum(1 for e in events if getattr(e, "device_type", None) is not None
-                          and str(e.device_type).endswith("CUDA") and not e.name.startswith(("aten::", "cuda")))
+            kernels = sum(
+                1
+                for e in events
+                if getattr(e, "device_type", None) is not None
+                and str(e.device_type).endswith("CUDA")
+                and not e.name.startswith(("aten::", "cuda"))
+            )
             seconds = run(timed)
-            stage_row = {"ops_per_step": round(ops / a.profile_steps, 1), "ms_per_step": round(1000 * seconds / timed, 2),
-                         "timed_steps": timed}
+            stage_row = {
+                "ops_per_step": round(ops / a.profile_steps, 1),
+                "ms_per_step": round(1000 * seconds / timed, 2),
+                "timed_steps": timed,
+            }
             if cuda:
                 stage_row["kernels_per_step"] = round(kernels / a.profile_steps, 1)
-                stage_row["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2 ** 20)
+                stage_row["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
             row[stage] = stage_row
             print(f"{pname} {stage}: {stage_row}", file=sys.stderr, flush=True)
         results["presets"][pname] = row

@@ -29,8 +29,13 @@ def node_modules() -> Path:
 
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".js": "text/javascript",
-                      ".mjs": "text/javascript", ".glb": "model/gltf-binary", ".vrm": "model/gltf-binary"}
+    extensions_map = {
+        **http.server.SimpleHTTPRequestHandler.extensions_map,
+        ".js": "text/javascript",
+        ".mjs": "text/javascript",
+        ".glb": "model/gltf-binary",
+        ".vrm": "model/gltf-binary",
+    }
 
     def log_message(self, *args):  # keep pytest output clean
         pass
@@ -55,10 +60,19 @@ def run_page(page: str, files: dict[str, Path], query: str, tmp_path: Path, time
     threading.Thread(target=server.serve_forever, daemon=True).start()
     options = webdriver.ChromeOptions()
     options.binary_location = chromium
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-dev-shm-usage",
-                 "--enable-unsafe-swiftshader", "--use-angle=swiftshader",
-                 f"--user-data-dir={tempfile.mkdtemp(prefix='t2bs-chrome-', dir=tmp_path)}"):
+    for flag in (
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--disable-dev-shm-usage",
+        "--enable-unsafe-swiftshader",
+        "--use-angle=swiftshader",
+        f"--user-data-dir={tempfile.mkdtemp(prefix='t2bs-chrome-', dir=tmp_path)}",
+    ):
         options.add_argument(flag)
     driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
     try:

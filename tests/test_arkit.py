@@ -43,15 +43,24 @@ def facecap():
 
 
 def _derive(model, mesh, lm):
-    return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
-                               lm.regions.get("mouth", {}).get("width_world"))
+    return derive_arkit_shapes(
+        model.neutral,
+        model.basis,
+        model.singular_values,
+        mesh.faces,
+        lm.vertex_ids,
+        lm.eyeballs,
+        lm.regions.get("mouth", {}).get("width_world"),
+    )
 
 
 def test_derived_shapes_match_facecaps_own(facecap):
     mesh, model, lm = facecap
     shapes = _derive(model, mesh, lm)
     assert set(shapes.report) == set(ARKIT_NAMES)
-    assert {"eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft", "mouthSmileRight", "mouthPucker"} <= set(shapes.names)
+    assert {"eyeBlinkLeft", "eyeBlinkRight", "jawOpen", "mouthSmileLeft", "mouthSmileRight", "mouthPucker"} <= set(
+        shapes.names
+    )
     assert not shapes.report["browInnerUp"]["present"] and "cannot see" in shapes.report["browInnerUp"]["why"]
     assert not shapes.report["tongueOut"]["present"] and "reference" in shapes.report["tongueOut"]["why"]
     truth = {arkit_name(n): d.reshape(-1).astype(np.float64) for n, d in mesh.morph_targets.items()}
@@ -91,7 +100,9 @@ def test_report_lists_arkit_shapes_and_how_to_open_the_rig(tmp_path):
     report = {"jawOpen": {"present": True, "why": "derived"}, "browInnerUp": {"present": False, "why": "cannot see it"}}
     write_json(tmp_path / "blendshapes" / "arkit.json", ArkitShapes(["jawOpen"], np.ones((1, 2)), report).to_dict())
     out = write_report(Project(tmp_path), "a fox", "quick", {"blendshapes": 1.0})
-    assert out["blendshapes"]["arkit"] == ["jawOpen"] and out["blendshapes"]["arkit_absent"] == {"browInnerUp": "cannot see it"}
+    assert out["blendshapes"]["arkit"] == ["jawOpen"] and out["blendshapes"]["arkit_absent"] == {
+        "browInnerUp": "cannot see it"
+    }
     md = (tmp_path / "report.md").read_text()
     assert "1 of the 52 present: jawOpen." in md and "![ARKit shapes](blendshapes/arkit_sheet.png)" in md
     assert "Blender: File > Import > glTF 2.0" in md and "--format vrm" in md and "t2bs view" in md

@@ -42,8 +42,10 @@ def _capture(frames: int = 90, seed: int = 0):
     rng = np.random.default_rng(seed)
     t = np.arange(frames) / 60.0
     bump = lambda c, w: np.exp(-0.5 * ((t - c) / w) ** 2)  # noqa: E731
-    weights = {name: np.clip(rng.normal(0.02, 0.01, frames), 0, 1) for name in
-               [c for c in LIVE_LINK_ORDER if c not in HEAD_COLUMNS and not c.endswith(("Yaw", "Pitch", "Roll"))]}
+    weights = {
+        name: np.clip(rng.normal(0.02, 0.01, frames), 0, 1)
+        for name in [c for c in LIVE_LINK_ORDER if c not in HEAD_COLUMNS and not c.endswith(("Yaw", "Pitch", "Roll"))]
+    }
     weights["EyeBlinkLeft"] = np.maximum(weights["EyeBlinkLeft"], bump(0.3, 0.05))
     weights["EyeBlinkRight"] = np.maximum(weights["EyeBlinkRight"], bump(0.3, 0.05))
     weights["JawOpen"] = 0.8 * bump(0.8, 0.2)
@@ -80,7 +82,10 @@ def test_bad_csvs_get_one_line(tmp_path):
         "short": ([good, ["00:00:00:01.000", "61", "0.1"]], "line 2 has 3 values"),
         "nan": ([good, ["00:00:00:01.000", "61", "abc", "0.1"]], "EyeBlinkLeft = 'abc' is not a number"),
         "tc": ([good, ["1.5", "61", "0.1", "0.1"]], "timecode '1.5'"),
-        "order": ([good, ["00:00:00:02.000", "61", "0", "0"], ["00:00:00:01.000", "61", "0", "0"]], "does not increase"),
+        "order": (
+            [good, ["00:00:00:02.000", "61", "0", "0"], ["00:00:00:01.000", "61", "0", "0"]],
+            "does not increase",
+        ),
         "only": ([good], "header only"),
     }
     for name, (rows, message) in cases.items():
@@ -96,13 +101,15 @@ def test_csv_drives_the_fox(fox_project, tmp_path):
     assert {"eyeBlinkLeft", "eyeBlinkRight", "jawOpen"} <= set(shapes.names)
     t, weights, head = _capture(90)
     take = write_livelink_csv(tmp_path / "take.csv", weights, t, head)
-    res = CliRunner().invoke(app, ["retarget", str(root), "--driver", str(take), "-o", str(tmp_path / "out"), "--size", "64"])
+    res = CliRunner().invoke(
+        app, ["retarget", str(root), "--driver", str(take), "-o", str(tmp_path / "out"), "--size", "64"]
+    )
     assert res.exit_code == 0, res.output
     assert "absent on this rig" in res.output  # brows etc. are said, not dropped silently
     with open(tmp_path / "out" / "weights.csv") as f:
         rows = list(csv.reader(f))
     header, data = rows[0], np.asarray(rows[1:], float)
-    assert len(data) == 90 and header[2:2 + len(shapes.names)] == [n for n in shapes.names if n in header]
+    assert len(data) == 90 and header[2 : 2 + len(shapes.names)] == [n for n in shapes.names if n in header]
     for col, name in enumerate(header[2:-3], start=2):
         source = next(c for c in weights if c[0].lower() + c[1:] == name)
         np.testing.assert_allclose(data[:, col], weights[source], atol=1e-6)  # out = in on present shapes
@@ -128,7 +135,6 @@ def test_csv_drives_the_fox(fox_project, tmp_path):
 def test_csv_driver_needs_arkit_shapes(fox_project, tmp_path):
     import shutil
 
-
     root, _, _ = fox_project
     bare = tmp_path / "bare"
     shutil.copytree(root, bare)
@@ -146,8 +152,23 @@ def test_csv_driver_needs_arkit_shapes(fox_project, tmp_path):
 def vrm(fox_project, tmp_path_factory):
     root, model, shapes = fox_project
     path = tmp_path_factory.mktemp("vrm") / "fox.vrm"
-    res = CliRunner().invoke(app, ["export", str(root), "--format", "vrm", "--license", "CC-BY-4.0",
-                                   "--author", "Ada", "--name", "Foxy", "-o", str(path)])
+    res = CliRunner().invoke(
+        app,
+        [
+            "export",
+            str(root),
+            "--format",
+            "vrm",
+            "--license",
+            "CC-BY-4.0",
+            "--author",
+            "Ada",
+            "--name",
+            "Foxy",
+            "-o",
+            str(path),
+        ],
+    )
     assert res.exit_code == 0, res.output
     return path, model, shapes, res.output
 
@@ -162,11 +183,14 @@ def test_vrm_extension_meta_humanoid_and_expressions(vrm):
     assert ext["specVersion"] == "1.0"
     meta = ext["meta"]
     assert meta["name"] == "Foxy" and meta["authors"] == ["Ada"] and meta["licenseUrl"] == VPL_URL
-    assert meta["otherLicenseUrl"] == "https://creativecommons.org/licenses/by/4.0/" and meta["commercialUsage"] == "corporation"
+    assert (
+        meta["otherLicenseUrl"] == "https://creativecommons.org/licenses/by/4.0/"
+        and meta["commercialUsage"] == "corporation"
+    )
     bones = ext["humanoid"]["humanBones"]
     assert len(bones) == 15 and {"hips", "spine", "head", "leftHand", "rightFoot"} <= set(bones)
     names = gltf.meshes[0].extras["targetNames"]
-    assert names[:len(shapes.names)] == shapes.names  # ARKit shapes first
+    assert names[: len(shapes.names)] == shapes.names  # ARKit shapes first
     preset, custom = ext["expressions"]["preset"], ext["expressions"]["custom"]
     assert set(preset) <= set(PRESETS) and list(custom) == shapes.names  # perfect sync: every ARKit shape by name
 
@@ -192,7 +216,9 @@ def test_vrm_needs_a_license(fox_project, tmp_path):
     root, _, _ = fox_project
     res = CliRunner().invoke(app, ["export", str(root), "--format", "vrm", "-o", str(tmp_path / "x.vrm")])
     assert res.exit_code != 0 and isinstance(res.exception, UserError) and "--license" in str(res.exception)
-    res = CliRunner().invoke(app, ["export", str(root), "--format", "vrm", "--license", "whatever", "-o", str(tmp_path / "x.vrm")])
+    res = CliRunner().invoke(
+        app, ["export", str(root), "--format", "vrm", "--license", "whatever", "-o", str(tmp_path / "x.vrm")]
+    )
     assert isinstance(res.exception, UserError) and "use one of" in str(res.exception)
     assert not (tmp_path / "x.vrm").exists()
 
@@ -202,10 +228,14 @@ def test_gltf_validator_and_three_vrm(vrm, tmp_path):
 
     path, _, shapes, _ = vrm
     node_modules()
-    proc = subprocess.run(["node", str(JS / "validate_glb.mjs"), str(path)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        ["node", str(JS / "validate_glb.mjs"), str(path)], capture_output=True, text=True, timeout=120
+    )
     report = json.loads(proc.stdout)
     assert proc.returncode == 0 and report["errors"] == 0, report["messages"]
-    result = run_page("vrm_check.html", {f".test-{tmp_path.name}.vrm": path}, f"vrm=.test-{tmp_path.name}.vrm", tmp_path)
+    result = run_page(
+        "vrm_check.html", {f".test-{tmp_path.name}.vrm": path}, f"vrm=.test-{tmp_path.name}.vrm", tmp_path
+    )
     assert result["ok"], result
     assert result["metaVersion"] == "1" and result["name"] == "Foxy" and len(result["humanBones"]) == 15
     assert {"aa", "blink", "blinkLeft", "blinkRight", "oh"} <= set(result["presets"])

@@ -40,7 +40,7 @@ def synthetic_head(collar: bool = False):
     head.remove_unreferenced_vertices()
     parts = [("head", head)]
     centres = {}
-    z_surf = np.sqrt(0.25 - EYE_X ** 2 - EYE_Y ** 2)
+    z_surf = np.sqrt(0.25 - EYE_X**2 - EYE_Y**2)
     for side, sx in (("left", 1), ("right", -1)):
         ball = trimesh.creation.icosphere(subdivisions=2, radius=BALL_R)
         centres[side] = np.array([sx * EYE_X, EYE_Y, z_surf - BALL_R + 0.004])
@@ -52,7 +52,7 @@ def synthetic_head(collar: bool = False):
         parts.append(("collar", box))
     for name, y in TEETH_Y.items():
         box = trimesh.creation.box(extents=(0.2, 0.025, 0.03))
-        box.apply_translation((0, y, np.sqrt(0.25 - y ** 2) - 0.05))
+        box.apply_translation((0, y, np.sqrt(0.25 - y**2) - 0.05))
         parts.append((f"teeth_{name}", box))
     verts, faces, ids = [], [], {}
     n = 0
@@ -140,7 +140,9 @@ def test_lower_teeth_follow_the_jaw_upper_teeth_stay(head):
     v = mesh.vertices.astype(np.float64)
     d = rig.morph_targets["jawOpen"].astype(np.float64)
     low = parts["teeth_lower"]
-    turned = rotate_about(v[low], np.asarray(rig.info["hinge"]), np.array([1.0, 0, 0]), np.radians(rig.info["jaw_angle_deg"]))
+    turned = rotate_about(
+        v[low], np.asarray(rig.info["hinge"]), np.array([1.0, 0, 0]), np.radians(rig.info["jaw_angle_deg"])
+    )
     np.testing.assert_allclose(d[low], turned - v[low], atol=2e-4)  # rigidly with the jaw
     assert np.abs(d[parts["teeth_upper"]]).max() == 0
 
@@ -149,8 +151,13 @@ def test_left_is_the_characters_left(head):
     mesh, _, parts, _, _, rig = head
     v = mesh.vertices
     lm = head[1]
-    for name, own, mirror in (("eyeBlinkLeft", 7, 1), ("mouthSmileLeft", 16, 12), ("browOuterUpLeft", None, None),
-                              ("mouthFrownLeft", 16, 12), ("browDownLeft", None, None)):
+    for name, own, mirror in (
+        ("eyeBlinkLeft", 7, 1),
+        ("mouthSmileLeft", 16, 12),
+        ("browOuterUpLeft", None, None),
+        ("mouthFrownLeft", 16, 12),
+        ("browDownLeft", None, None),
+    ):
         for sign, n, a, b in ((1, name, own, mirror), (-1, name.replace("Left", "Right"), mirror, own)):
             mag = np.linalg.norm(rig.morph_targets[n], axis=1)
             assert sign * (mag * v[:, 0]).sum() / mag.sum() > 0.05, n  # its motion sits on its own side
@@ -179,11 +186,19 @@ def test_landmarks_file_formats(tmp_path, head):
     mesh, lm, *_ = head
     p = tmp_path / "lm.json"
     # What `t2bs landmarks` writes: extra keys are ignored; named points are optional.
-    p.write_text(json.dumps({"version": 1, "backend": "override", "vertex_ids": lm.tolist(), "chin": 5, "named": {"brow_left": 7}}))
+    p.write_text(
+        json.dumps(
+            {"version": 1, "backend": "override", "vertex_ids": lm.tolist(), "chin": 5, "named": {"brow_left": 7}}
+        )
+    )
     ids, named = read_landmarks_file(p, mesh.num_vertices)
     assert ids.tolist() == lm.tolist() and named == {"chin": 5, "brow_left": 7}
-    for bad, words in (({"vertex_ids": [1, 2]}, "20 integers"), ({"vertex_ids": list(range(19)) + [10 ** 7]}, "must be in"),
-                       ({"vertex_ids": lm.tolist(), "nose": 3}, None), ({"points": []}, "needs \"vertex_ids\"")):
+    for bad, words in (
+        ({"vertex_ids": [1, 2]}, "20 integers"),
+        ({"vertex_ids": list(range(19)) + [10**7]}, "must be in"),
+        ({"vertex_ids": lm.tolist(), "nose": 3}, None),
+        ({"points": []}, 'needs "vertex_ids"'),
+    ):
         p.write_text(json.dumps(bad))
         if words is None:  # unknown top-level keys are other tools' data, not an error
             read_landmarks_file(p, mesh.num_vertices)
@@ -225,13 +240,13 @@ def test_landmarks_stage_reuses_the_auto_rigs_landmarks(tmp_path, head):
     motion landmark backend: `t2bs landmarks` (auto) takes the auto rig's 20 points."""
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, write_json
-    from t2bs.retarget.commands import compute_landmarks
+    from t2bs.retarget.landmarks_stage import run
 
     mesh, lm, *_ = head
     project = Project(tmp_path / "proj")
     save_mesh(mesh, project.mesh_path)
     write_json(project.path("character", "autorig.json"), {"landmarks": {"vertex_ids": lm.tolist(), "source": "file"}})
-    got = compute_landmarks(project.root, "auto")
+    got = run(project.root).landmarks
     assert got.backend == "autorig" and got.vertex_ids.tolist() == lm.tolist()
 
 
@@ -259,7 +274,10 @@ def test_picked_landmarks_by_ray_and_saved_for_the_auto_rig(tmp_path, head):
     # In a project: the picks saved before, else the points the auto rig found, to correct.
     from t2bs.project import write_json
 
-    write_json(tmp_path / "proj" / "character" / "autorig.json", {"landmarks": {"vertex_ids": lm.tolist(), "named": {"chin": 3}}})
+    write_json(
+        tmp_path / "proj" / "character" / "autorig.json",
+        {"landmarks": {"vertex_ids": lm.tolist(), "named": {"chin": 3}}},
+    )
     found = LandmarkPicks.for_project(tmp_path / "proj", mesh.num_vertices)
     assert found.to_dict()["vertex_ids"] == lm.tolist() and found.ids["chin"] == 3
     picks.save(tmp_path / "proj" / "landmarks" / "picked.json")
@@ -305,15 +323,28 @@ def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     the grid say the motion came from the auto rig."""
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, read_json, write_json
-    from t2bs.video.commands import videos_command
+    from t2bs.video import stage as videos
     from t2bs.video.grid import load_grid
 
     mesh, lm, parts, *_ = head
     project = Project(tmp_path / "proj")
     save_mesh(mesh, project.mesh_path)
     write_json(project.path("landmarks", "picked.json"), {"vertex_ids": lm.tolist(), "backend": "picked"})
-    videos_command(project.root, prompts="blinking", samples=1, defects="clean", frames=8, size=48, views=3, seed=0,
-                   shading="unlit", backend="procedural", checkpoint=None, steps=1, import_grid=None, expression=None, sample=0)
+    videos.run(
+        project.root,
+        videos.VideosConfig(
+            prompts="blinking",
+            samples=1,
+            defects="clean",
+            frames=8,
+            size=48,
+            views=3,
+            seed=0,
+            shading="unlit",
+            backend="procedural",
+            steps=1,
+        ),
+    )
     stage = read_json(project.path("manifest.json"))["stages"]["videos"]
     assert stage["motion_source"] == "autorig" and stage["autorig"]["landmarks"] == "file"
     assert "eyeBlinkLeft" in stage["autorig"]["shapes"]
@@ -326,10 +357,10 @@ def test_video_stage_auto_rigs_a_static_character(tmp_path, head):
     assert gap[0] == pytest.approx(np.linalg.norm(mesh.vertices[lm[8]] - mesh.vertices[lm[10]]), rel=1e-4)
     assert gap.min() < 0.5 * gap[0]
     # The landmarks stage then writes the auto rig's points; a re-run keeps the rig and the videos.
-    from t2bs.retarget.commands import compute_landmarks
-    from t2bs.rig.commands import project_autorig
+    from t2bs.retarget.landmarks_stage import run
+    from t2bs.rig.stage import project_autorig
 
-    assert compute_landmarks(project.root, "auto").backend == "autorig"
+    assert run(project.root).backend == "autorig"
     done = project.path("character", "autorig", "done.json").read_text()
     project_autorig(project, mesh)
     assert project.path("character", "autorig", "done.json").read_text() == done
@@ -348,8 +379,13 @@ def test_cli_on_a_mesh_with_no_face_prints_one_error_line(tmp_path):
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
     save_mesh(Mesh(np.asarray(ball.vertices, np.float32), np.asarray(ball.faces, np.int32)), tmp_path / "ball.glb")
     src = str(Path(__file__).resolve().parents[1] / "src")
-    res = subprocess.run([sys.executable, "-m", "t2bs.cli", "autorig", str(tmp_path / "ball.glb"), "-o", str(tmp_path / "o.glb")],
-                         capture_output=True, text=True, env={**__import__("os").environ, "PYTHONPATH": src}, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "t2bs.cli", "autorig", str(tmp_path / "ball.glb"), "-o", str(tmp_path / "o.glb")],
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, "PYTHONPATH": src},
+        timeout=120,
+    )
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: no face found on"), res.stderr
     assert "--landmarks" in lines[0] and not (tmp_path / "o.glb").exists()
@@ -360,9 +396,17 @@ def test_report_says_the_motion_came_from_the_auto_rig(tmp_path):
     from t2bs.project import Project
 
     project = Project(tmp_path / "proj")
-    project.record_stage("videos", backend="procedural", motion_source="autorig",
-                         autorig={"shapes": ["jawOpen", "eyeBlinkLeft"], "landmarks": "mediapipe", "mouth": "lip seam: the lips part",
-                                  "missing": {"tongueOut": "no tongue part", "mouthClose": "no lips", "mouthRollLower": "no lips"}})
+    project.record_stage(
+        "videos",
+        backend="procedural",
+        motion_source="autorig",
+        autorig={
+            "shapes": ["jawOpen", "eyeBlinkLeft"],
+            "landmarks": "mediapipe",
+            "mouth": "lip seam: the lips part",
+            "missing": {"tongueOut": "no tongue part", "mouthClose": "no lips", "mouthRollLower": "no lips"},
+        },
+    )
     report = write_report(project, "a head", "quick", {"videos": 1.0})
     text = project.path("report.md").read_text()
     assert report["motion_source"] == "autorig"

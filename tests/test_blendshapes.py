@@ -75,8 +75,14 @@ def _turning_captures(neutral: np.ndarray, offsets: dict[str, np.ndarray], frame
     caps = {}
     for i, (name, off) in enumerate(sorted(offsets.items())):
         s = np.linspace(0.0, 1.0, frames)
-        rv = np.stack([np.radians(5.0) * np.sin(np.pi * s + i), np.radians(12.0) * np.sin(2 * np.pi * s * (1 + 0.3 * i)),
-                       np.zeros(frames)], 1)
+        rv = np.stack(
+            [
+                np.radians(5.0) * np.sin(np.pi * s + i),
+                np.radians(12.0) * np.sin(2 * np.pi * s * (1 + 0.3 * i)),
+                np.zeros(frames),
+            ],
+            1,
+        )
         rot = roma.rotvec_to_rotmat(torch.as_tensor(rv)).numpy()
         pose = neutral[None].astype(np.float64) + (0 if off is None else s[:, None, None] * off[None])
         caps[f"{name}-s0"] = (np.einsum("tij,tnj->tni", rot, pose) + np.array([0.01 * i, 0.0, 0.02])).astype(np.float32)
@@ -130,7 +136,9 @@ def test_fitting_a_training_frame_returns_its_weights(toy):
     # A vertex subset (masked normal equations) still recovers the weights exactly.
     mask = np.zeros(len(neutral), bool)
     mask[::3] = True
-    np.testing.assert_allclose(fit_geometry(model, caps[vid], prior=0.0, vertex_mask=mask), model.capture_weights[vid], atol=1e-4)
+    np.testing.assert_allclose(
+        fit_geometry(model, caps[vid], prior=0.0, vertex_mask=mask), model.capture_weights[vid], atol=1e-4
+    )
 
 
 def test_model_npz_round_trip(tmp_path, toy):
@@ -193,15 +201,27 @@ def test_rgb_term_pulls_weights_towards_the_target_images():
         images = splat_vertices(torch.as_tensor(truth), torch.as_tensor(mesh.vertex_rgb()), cam, torch.as_tensor(vis))
     # Start from the neutral (weights 0), knowing only the images: L_rgb alone must move the mesh.
     cfg = FitConfig(rgb_steps=6, image_size=48, prior=1e-6)
-    w = fit_frames(model, colors=mesh.vertex_rgb(), faces=mesh.faces, target_images=images.numpy()[:, None],
-                   cameras=[cam], config=cfg)
+    w = fit_frames(
+        model,
+        colors=mesh.vertex_rgb(),
+        faces=mesh.faces,
+        target_images=images.numpy()[:, None],
+        cameras=[cam],
+        config=cfg,
+    )
     before = np.linalg.norm(mesh.vertices[None] - truth, axis=-1).mean()
     after = np.linalg.norm(model.vertices(w) - truth, axis=-1).mean()
     assert after < 0.6 * before, (before, after)
     print(f"images-only fit: mean vertex error {before:.5f} -> {after:.5f}")
     # With the target vertices too, the refinement keeps the exact solution of a training frame.
-    w2 = fit_frames(model, colors=mesh.vertex_rgb(), faces=mesh.faces, target_vertices=truth, cameras=[cam],
-                    config=FitConfig(rgb_steps=2, image_size=32))
+    w2 = fit_frames(
+        model,
+        colors=mesh.vertex_rgb(),
+        faces=mesh.faces,
+        target_vertices=truth,
+        cameras=[cam],
+        config=FitConfig(rgb_steps=2, image_size=32),
+    )
     assert np.linalg.norm(model.vertices(w2) - truth, axis=-1).mean() < 1e-3 * mesh.bbox_diagonal()
 
 
@@ -221,7 +241,7 @@ def test_held_out_expressions_on_turtle_with_the_video_animator():
 
 
 def test_blendshapes_command_end_to_end(tmp_path, capsys):
-    from t2bs.blendshapes.commands import blendshapes_command
+    from t2bs.blendshapes.stage import BlendshapesConfig, run
     from t2bs.eval.bench_blendshapes import morph_captures
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.geometry.mesh import normalize
@@ -235,10 +255,8 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
         (tmp_path / "videos" / name).mkdir(parents=True)
         np.save(tmp_path / "videos" / name / "gt_vertices.npy", frames)
     with pytest.raises(UserError, match="no finished reconstructions"):
-        blendshapes_command(tmp_path, components=100, source="vcdgs", semantic=True, animation=None, usd=False,
-                            fps=8.0, force=False, arkit=True)
-    blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False, arkit=True)
+        run(tmp_path, BlendshapesConfig(source="vcdgs"))
+    run(tmp_path, BlendshapesConfig(source="auto"))
     out = capsys.readouterr().out
     assert "gt captures" in out and "explained variance" in out
     model = load_model(tmp_path / "blendshapes" / "model.npz")
@@ -258,8 +276,7 @@ def test_blendshapes_command_end_to_end(tmp_path, capsys):
     assert sheet.shape == (rows * 192, 4 * 192, 3) and (sheet[:192, 192:384] != sheet[:192, :192]).any()
     assert list(rig.morph_targets) == arkit.names + model.semantic_names + visible
     assert (tmp_path / "blendshapes" / "done.json").exists()
-    blendshapes_command(tmp_path, components=100, source="auto", semantic=True, animation=None, usd=False,
-                        fps=8.0, force=False, arkit=True)
+    run(tmp_path, BlendshapesConfig(source="auto"))
     assert "up to date" in capsys.readouterr().out
 
 
@@ -269,14 +286,31 @@ def test_bench_json_output_contract(tmp_path):
     import typer
     from typer.testing import CliRunner
 
-    from t2bs.eval.bench_blendshapes import bench_blendshapes_command
+    from t2bs.cli.bench import bench_blendshapes_command
 
     asset("turtle.glb")  # skipped here when absent, a failure in CI
     app = typer.Typer()
     app.command()(bench_blendshapes_command)
     out = tmp_path / "bench.json"
-    res = CliRunner().invoke(app, ["--asset", str(TURTLE), "--json", str(out), "--prompts", "6", "--frames", "6",
-                                   "--held-out", "2", "--rgb-steps", "0", "--image-size", "64"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "--asset",
+            str(TURTLE),
+            "--json",
+            str(out),
+            "--prompts",
+            "6",
+            "--frames",
+            "6",
+            "--held-out",
+            "2",
+            "--rgb-steps",
+            "0",
+            "--image-size",
+            "64",
+        ],
+    )
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())
     (row,) = data["rows"]

@@ -28,8 +28,11 @@ def rig(tmp_path_factory):
 
     asset("turtle.glb")  # skipped here when absent, a failure in CI
     mesh, _ = normalize(load_mesh(TURTLE))
-    caps, expr = animator_captures(mesh, frames=10, expressions=["blinking", "smiling", "opening the mouth extremely wide",
-                                                                 "shaking the head", "talking"])
+    caps, expr = animator_captures(
+        mesh,
+        frames=10,
+        expressions=["blinking", "smiling", "opening the mouth extremely wide", "shaking the head", "talking"],
+    )
     model = build_model(mesh.vertices, caps, components=100)
     model.semantic_names, model.semantic_weights, model.semantic_sources = semantic_shapes(model, caps, expr)
     path = tmp_path_factory.mktemp("rig") / "model.glb"
@@ -42,8 +45,15 @@ def _arkit(model, mesh):
     from t2bs.face.landmarks import detect_landmarks
 
     lm, _ = detect_landmarks(mesh, "auto", model=model)
-    return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, mesh.faces, lm.vertex_ids, lm.eyeballs,
-                               lm.regions.get("mouth", {}).get("width_world"))
+    return derive_arkit_shapes(
+        model.neutral,
+        model.basis,
+        model.singular_values,
+        mesh.faces,
+        lm.vertex_ids,
+        lm.eyeballs,
+        lm.regions.get("mouth", {}).get("width_world"),
+    )
 
 
 def _exported(path):
@@ -70,7 +80,9 @@ def test_glb_round_trip_targets_animation(rig):
     assert "jaw_open" in names and "blink" in names
     assert 0 < len(keep) < model.num_components  # the turtle's captures leave invisible components
     np.testing.assert_allclose(back.vertices, model.neutral, atol=1e-6)
-    np.testing.assert_allclose(offsets[names.index("jawOpen")], model.offsets(arkit.weights[arkit.names.index("jawOpen")]), atol=1e-6)
+    np.testing.assert_allclose(
+        offsets[names.index("jawOpen")], model.offsets(arkit.weights[arkit.names.index("jawOpen")]), atol=1e-6
+    )
     # Exported weights (scaled targets) pose the same mesh as the basis weights, within -1..1, up to
     # the dropped components, each below VISIBLE_FRACTION of the diagonal.
     w = model.capture_weights["smiling-s0"]
@@ -97,7 +109,9 @@ def _node_modules() -> Path:
 def test_khronos_gltf_validator_reports_no_errors(rig):
     _node_modules()
     _, _, path = rig
-    proc = subprocess.run(["node", str(JS / "validate_glb.mjs"), str(path)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        ["node", str(JS / "validate_glb.mjs"), str(path)], capture_output=True, text=True, timeout=120
+    )
     report = json.loads(proc.stdout)
     assert proc.returncode == 0 and report["errors"] == 0, report["messages"]
     assert report["info"]["animationCount"] == 1
@@ -109,7 +123,9 @@ def test_validator_script_catches_a_broken_file(tmp_path, rig):
     broken = tmp_path / "broken.glb"
     data = bytearray(path.read_bytes())
     broken.write_bytes(bytes(data[: len(data) // 2]))  # truncated binary chunk
-    proc = subprocess.run(["node", str(JS / "validate_glb.mjs"), str(broken)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        ["node", str(JS / "validate_glb.mjs"), str(broken)], capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 1 and json.loads(proc.stdout)["errors"] > 0
 
 
@@ -119,8 +135,12 @@ def test_three_js_loads_the_rig_in_headless_chromium(rig, tmp_path):
     from browser_page import run_page
 
     model, _, path = rig
-    result = run_page("three_check.html", {f".test-{tmp_path.name}.glb": path},
-                      f"glb=.test-{tmp_path.name}.glb&shot=jawOpen", tmp_path)
+    result = run_page(
+        "three_check.html",
+        {f".test-{tmp_path.name}.glb": path},
+        f"glb=.test-{tmp_path.name}.glb&shot=jawOpen",
+        tmp_path,
+    )
     assert result["ok"], result
     names = _exported(path)
     (mesh,) = result["meshes"]
@@ -131,7 +151,10 @@ def test_three_js_loads_the_rig_in_headless_chromium(rig, tmp_path):
     assert result["clips"][0]["name"] == "blinking-s0" and result["mixerOk"] is True
     # WebGL screenshots: jawOpen at 1 visibly changes the face (the mouth opens) and nothing else is lost.
     shot = result["screenshots"]
-    assert shot["characterPixels"] > 3000 and 0.01 * shot["characterPixels"] < shot["changedPixels"] < 0.5 * shot["characterPixels"]
+    assert (
+        shot["characterPixels"] > 3000
+        and 0.01 * shot["characterPixels"] < shot["changedPixels"] < 0.5 * shot["characterPixels"]
+    )
     for key in ("neutral", "posed"):
         (tmp_path / f"three_jawOpen_{key}.png").write_bytes(base64.b64decode(shot[key].split(",", 1)[1]))
 
@@ -222,7 +245,9 @@ def test_usd_units_extent_and_sparse_point_indices(rig, tmp_path):
     extent = np.asarray(geom.GetExtentAttr().Get())
     names, offsets, _ = rig_targets(model)
     reach = np.abs(offsets).max(0)  # [N, 3]
-    assert (extent[0] <= (model.neutral - reach).min(0) + 1e-6).all() and (extent[1] >= (model.neutral + reach).max(0) - 1e-6).all()
+    assert (extent[0] <= (model.neutral - reach).min(0) + 1e-6).all() and (
+        extent[1] >= (model.neutral + reach).max(0) - 1e-6
+    ).all()
     binding = UsdSkel.BindingAPI(geom.GetPrim())
     for token, off in zip(binding.GetBlendShapesAttr().Get(), offsets):
         shape = UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Character/Mesh/{token}"))
@@ -251,7 +276,9 @@ def test_usd_sparse_shape_lists_only_moving_points(tmp_path):
     basis[0, 3, 2] = 1.0  # moves vertex 3 only
     model = BlendshapeModel(v, basis, np.ones(1), ["pc000"], capture_weights={"a": np.array([[0.5]], np.float32)})
     srgb = np.full((4, 3), 0.5, np.float32)
-    path = export_usd(model, Mesh(v, np.array([[0, 1, 2], [1, 3, 2]], np.int32), vertex_colors=srgb), tmp_path / "m.usda")
+    path = export_usd(
+        model, Mesh(v, np.array([[0, 1, 2], [1, 3, 2]], np.int32), vertex_colors=srgb), tmp_path / "m.usda"
+    )
     stage = Usd.Stage.Open(str(path))
     shape = UsdSkel.BlendShape(stage.GetPrimAtPath("/Character/Mesh/pc000"))
     assert list(shape.GetPointIndicesAttr().Get()) == [3]

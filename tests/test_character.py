@@ -17,13 +17,36 @@ from t2bs.errors import UserError
 from t2bs.geometry.mesh import CANONICAL_DIAGONAL
 
 PROMPTS = {
-    "fox": "a fox", "dog": "a corgi", "cat": "a cat", "deer": "a deer with antlers", "bear": "a bear",
-    "rabbit": "a rabbit", "shark": "a shark", "dinosaur": "an indoraptor", "bird": "an owl", "frog": "a frog",
-    "robot": "a robot", "alien": "an alien", "bug": "a bug", "plant": "a flower creature", "human": "a crying head",
+    "fox": "a fox",
+    "dog": "a corgi",
+    "cat": "a cat",
+    "deer": "a deer with antlers",
+    "bear": "a bear",
+    "rabbit": "a rabbit",
+    "shark": "a shark",
+    "dinosaur": "an indoraptor",
+    "bird": "an owl",
+    "frog": "a frog",
+    "robot": "a robot",
+    "alien": "an alien",
+    "bug": "a bug",
+    "plant": "a flower creature",
+    "human": "a crying head",
     "cartoon": "a blob",
 }
-ALWAYS = {"head", "jaw", "eye_left", "eye_right", "eyelid_left", "eyelid_right", "lip_upper", "lip_lower",
-          "mouth_interior", "teeth", "tongue"}
+ALWAYS = {
+    "head",
+    "jaw",
+    "eye_left",
+    "eye_right",
+    "eyelid_left",
+    "eyelid_right",
+    "lip_upper",
+    "lip_lower",
+    "mouth_interior",
+    "teeth",
+    "tongue",
+}
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +88,19 @@ def test_archetype_parts_are_closed_labelled_and_sized(characters, name):
 def test_each_rig_control_moves_only_its_region_and_visibly(characters, name):
     mesh = characters[name].mesh
     diag = mesh.bbox_diagonal()
-    expected = {"jaw_open", "blink_left", "blink_right", "smile", "frown", "tongue_out", "cheek_puff",
-                "look_left", "look_right", "look_up", "look_down"}
+    expected = {
+        "jaw_open",
+        "blink_left",
+        "blink_right",
+        "smile",
+        "frown",
+        "tongue_out",
+        "cheek_puff",
+        "look_left",
+        "look_right",
+        "look_up",
+        "look_down",
+    }
     assert expected <= set(mesh.morph_names)
     for control, offsets in mesh.morph_targets.items():
         moved = np.linalg.norm(offsets, axis=1)
@@ -164,7 +198,8 @@ def test_command_backend(tmp_path):
         "import sys, trimesh\n"
         "out, seed = sys.argv[1], int(sys.argv[2])\n"
         "m = trimesh.creation.box(extents=(1, 2, 3 + seed))\n"
-        "m.export(out + '/mesh.obj')\n")
+        "m.export(out + '/mesh.obj')\n"
+    )
     tmpl = f"{sys.executable} {script} {{out}} {{seed}} {{prompt}}"
     r = generate("a box", backend="command", command=tmpl, seed=1)
     assert r.info["backend"] == "command" and abs(r.mesh.bbox_diagonal() - CANONICAL_DIAGONAL) < 1e-4

@@ -47,32 +47,64 @@ def build_tiny_shap_e(folder: Path, seed: int = 0, grid_size: int = 24) -> Path:
     vocab = _byte_vocab()
     tokenizer = CLIPTokenizer(vocab=vocab, merges=[], model_max_length=77)
     eos = vocab["<|endoftext|>"]
-    text_encoder = CLIPTextModelWithProjection(CLIPTextConfig(
-        bos_token_id=vocab["<|startoftext|>"], eos_token_id=eos, pad_token_id=eos, hidden_size=32, projection_dim=32,
-        intermediate_size=37, num_attention_heads=4, num_hidden_layers=2, vocab_size=len(vocab)))
-    prior = PriorTransformer(num_attention_heads=2, attention_head_dim=16, embedding_dim=32, num_embeddings=32,
-                             embedding_proj_dim=32, time_embed_dim=128, num_layers=1, clip_embed_dim=64,
-                             additional_embeddings=0, time_embed_act_fn="gelu", norm_in_type="layer",
-                             encoder_hid_proj_type=None, added_emb_type=None)
-    renderer = ShapERenderer(param_shapes=((8, 93), (8, 8), (8, 8), (8, 8)), d_latent=32, d_hidden=8, n_output=12,
-                             background=(0.1, 0.1, 0.1))
-    scheduler = HeunDiscreteScheduler(beta_schedule="exp", num_train_timesteps=1024, prediction_type="sample",
-                                      use_karras_sigmas=True, clip_sample=True, clip_sample_range=1.0)
+    text_encoder = CLIPTextModelWithProjection(
+        CLIPTextConfig(
+            bos_token_id=vocab["<|startoftext|>"],
+            eos_token_id=eos,
+            pad_token_id=eos,
+            hidden_size=32,
+            projection_dim=32,
+            intermediate_size=37,
+            num_attention_heads=4,
+            num_hidden_layers=2,
+            vocab_size=len(vocab),
+        )
+    )
+    prior = PriorTransformer(
+        num_attention_heads=2,
+        attention_head_dim=16,
+        embedding_dim=32,
+        num_embeddings=32,
+        embedding_proj_dim=32,
+        time_embed_dim=128,
+        num_layers=1,
+        clip_embed_dim=64,
+        additional_embeddings=0,
+        time_embed_act_fn="gelu",
+        norm_in_type="layer",
+        encoder_hid_proj_type=None,
+        added_emb_type=None,
+    )
+    renderer = ShapERenderer(
+        param_shapes=((8, 93), (8, 8), (8, 8), (8, 8)), d_latent=32, d_hidden=8, n_output=12, background=(0.1, 0.1, 0.1)
+    )
+    scheduler = HeunDiscreteScheduler(
+        beta_schedule="exp",
+        num_train_timesteps=1024,
+        prediction_type="sample",
+        use_karras_sigmas=True,
+        clip_sample=True,
+        clip_sample_range=1.0,
+    )
     cases, masks = marching_cubes_tables()
     renderer.mesh_decoder.cases.copy_(cases)
     renderer.mesh_decoder.masks.copy_(masks)
-    pipe = ShapEPipeline(prior=prior, text_encoder=text_encoder, tokenizer=tokenizer, scheduler=scheduler,
-                         shap_e_renderer=renderer)
+    pipe = ShapEPipeline(
+        prior=prior, text_encoder=text_encoder, tokenizer=tokenizer, scheduler=scheduler, shap_e_renderer=renderer
+    )
     pipe.set_progress_bar_config(disable=True)
     with torch.no_grad():
-        latents = pipe("a fox", num_inference_steps=1, generator=torch.Generator().manual_seed(seed),
-                       output_type="latent").images
+        latents = pipe(
+            "a fox", num_inference_steps=1, generator=torch.Generator().manual_seed(seed), output_type="latent"
+        ).images
         projected = renderer.params_proj(latents[0][None])
         for name, param in renderer.mlp.state_dict().items():
             if f"nerstf.{name}" in projected:
                 param.copy_(projected[f"nerstf.{name}"].squeeze(0))
         points = volume_query_points(renderer.volume, grid_size)[None].float()
-        sdf = renderer.mlp(position=points, direction=None, ts=None, nerf_level="fine", rendering_mode="stf").signed_distance
+        sdf = renderer.mlp(
+            position=points, direction=None, ts=None, nerf_level="fine", rendering_mode="stf"
+        ).signed_distance
         logits = torch.atanh(sdf.clamp(-0.999, 0.999))
         renderer.mlp.mlp[-1].bias[0] -= logits.median()
     pipe.save_pretrained(str(folder))
@@ -117,8 +149,11 @@ def marching_cubes_tables():
         inside = [(case >> c) & 1 for c in range(8)]
         links: dict[int, list[int]] = {}
         for quad in faces:
-            cut = [edges.index(tuple(sorted((quad[i], quad[(i + 1) % 4])))) for i in range(4)
-                   if inside[quad[i]] != inside[quad[(i + 1) % 4]]]
+            cut = [
+                edges.index(tuple(sorted((quad[i], quad[(i + 1) % 4]))))
+                for i in range(4)
+                if inside[quad[i]] != inside[quad[(i + 1) % 4]]
+            ]
             if len(cut) == 2:
                 pairs = [cut]
             elif len(cut) == 4:  # ambiguous face: cut off each inside corner on its own
@@ -166,16 +201,18 @@ def test_tiny_shap_e_pipeline_loads_and_makes_a_canonical_mesh(tiny_checkpoint):
     from t2bs.geometry.mesh import CANONICAL_DIAGONAL
 
     assert json.loads((tiny_checkpoint / "model_index.json").read_text())["_class_name"] == "ShapEPipeline"
-    result = generate("a fox", backend="diffusers", seed=0, checkpoint=tiny_checkpoint, steps=1, grid_size=24,
-                      device="cpu")
+    result = generate(
+        "a fox", backend="diffusers", seed=0, checkpoint=tiny_checkpoint, steps=1, grid_size=24, device="cpu"
+    )
     mesh = result.mesh
     assert result.info["backend"] == "diffusers" and result.info["model"] == "ShapEPipeline"
     assert mesh.num_vertices > 10 and len(mesh.faces) > 10
     assert mesh.vertex_colors is not None and mesh.vertex_colors.shape == (mesh.num_vertices, 3)
     assert abs(mesh.bbox_diagonal() - CANONICAL_DIAGONAL) < 1e-4
     assert np.allclose((mesh.vertices.min(0) + mesh.vertices.max(0)) / 2, 0, atol=1e-5)
-    again = generate("a fox", backend="diffusers", seed=0, checkpoint=tiny_checkpoint, steps=1, grid_size=24,
-                     device="cpu")
+    again = generate(
+        "a fox", backend="diffusers", seed=0, checkpoint=tiny_checkpoint, steps=1, grid_size=24, device="cpu"
+    )
     assert np.array_equal(again.mesh.vertices, mesh.vertices)  # deterministic for a seed
 
 

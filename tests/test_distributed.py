@@ -14,8 +14,13 @@ TESTS = str(Path(__file__).parent)
 
 def _jobs(root: Path, log: Path, n=4, sleep=0.0):
     return [
-        Job(key=f"k{i}", name=f"job{i}", out_dir=root / f"job{i}", fn="jobs_for_tests:write_square",
-            kwargs={"value": i, "log": str(log), "sleep": sleep})
+        Job(
+            key=f"k{i}",
+            name=f"job{i}",
+            out_dir=root / f"job{i}",
+            fn="jobs_for_tests:write_square",
+            kwargs={"value": i, "log": str(log), "sleep": sleep},
+        )
         for i in range(n)
     ]
 
@@ -86,19 +91,42 @@ def test_ray_cluster_reconstructs_a_project_despite_a_killed_worker(tmp_path):
     import ray
 
     from conftest import asset
-    from t2bs.pipeline import invoke
-    from t2bs.recon.commands import list_videos, recon_job
+    from t2bs.recon.stage import list_videos, recon_job
     from t2bs.recon.config import preset
     from t2bs.project import Project
 
     project = Project(tmp_path / "proj")
-    r = subprocess.run([sys.executable, "-m", "t2bs.cli", "render", str(asset("turtle.glb")), "-o", str(project.root),
-                        "--size", "64", "--views", "3"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "t2bs.cli",
+            "render",
+            str(asset("turtle.glb")),
+            "-o",
+            str(project.root),
+            "--size",
+            "64",
+            "--views",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
-    from t2bs.video.commands import videos_command
+    from t2bs.video.stage import VideosConfig, run
 
-    invoke(videos_command, project_dir=project.root, prompts="blinking,smiling,opening the mouth extremely wide",
-           samples=1, defects="clean", frames=5, size=48, views=3)
+    run(
+        project,
+        VideosConfig(
+            prompts="blinking,smiling,opening the mouth extremely wide",
+            samples=1,
+            defects="clean",
+            frames=5,
+            size=48,
+            views=3,
+        ),
+    )
     cfg = preset("quick", iterations=40, global_iters=8, static_iters=20, num_control_points=48, seed=1)
     jobs = [recon_job(project, g, cfg, preview=False) for g in list_videos(project, None)]
     assert len(jobs) == 3
@@ -107,11 +135,32 @@ def test_ray_cluster_reconstructs_a_project_despite_a_killed_worker(tmp_path):
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
     ray_bin = [sys.executable, "-m", "ray.scripts.scripts"]
     common = ["--node-ip-address", "127.0.0.1", "--disable-usage-stats"]
-    subprocess.run([*ray_bin, "start", "--head", "--port", str(port), "--num-cpus", "2", "--include-dashboard", "false",
-                    "--temp-dir", f"/tmp/rt{os.getpid()}", *common], env=env, check=True, capture_output=True)
+    subprocess.run(
+        [
+            *ray_bin,
+            "start",
+            "--head",
+            "--port",
+            str(port),
+            "--num-cpus",
+            "2",
+            "--include-dashboard",
+            "false",
+            "--temp-dir",
+            f"/tmp/rt{os.getpid()}",
+            *common,
+        ],
+        env=env,
+        check=True,
+        capture_output=True,
+    )
     try:
-        subprocess.run([*ray_bin, "start", "--address", f"127.0.0.1:{port}", "--num-cpus", "1", *common],
-                       env=env, check=True, capture_output=True)
+        subprocess.run(
+            [*ray_bin, "start", "--address", f"127.0.0.1:{port}", "--num-cpus", "1", *common],
+            env=env,
+            check=True,
+            capture_output=True,
+        )
         killed = []
 
         def kill_one_running_worker():
@@ -133,13 +182,20 @@ def test_ray_cluster_reconstructs_a_project_despite_a_killed_worker(tmp_path):
         assert sorted(done) == sorted(j.name for j in jobs)
         assert all(is_done(j.out_dir, j.key) for j in jobs)
         recon = project.path("recon")
-        assert sorted(p.name for p in recon.iterdir() if not p.name.startswith(".checkpoints")) == sorted(j.out_dir.name for j in jobs)
+        assert sorted(p.name for p in recon.iterdir() if not p.name.startswith(".checkpoints")) == sorted(
+            j.out_dir.name for j in jobs
+        )
         assert len({info["worker_pid"] for info in done.values()}) >= 2  # both nodes' workers took jobs
     finally:
         ray.shutdown()
         subprocess.run([*ray_bin, "stop", "--force"], env=env, capture_output=True)
     # The cluster's results equal an in-process run of the same jobs (same seed).
-    local = [recon_job(Project(project.root), j.out_dir.parents[1] / "videos" / j.out_dir.name, cfg, preview=False) for j in jobs[:1]]
+    local = [
+        recon_job(Project(project.root), j.out_dir.parents[1] / "videos" / j.out_dir.name, cfg, preview=False)
+        for j in jobs[:1]
+    ]
     local[0].out_dir = tmp_path / "local" / local[0].out_dir.name
     run_jobs(local)
-    np.testing.assert_allclose(np.load(local[0].out_dir / "vertices.npy"), np.load(jobs[0].out_dir / "vertices.npy"), atol=1e-6)
+    np.testing.assert_allclose(
+        np.load(local[0].out_dir / "vertices.npy"), np.load(jobs[0].out_dir / "vertices.npy"), atol=1e-6
+    )

@@ -64,13 +64,20 @@ def tetra_gltf(folder: Path, name: str = "m.gltf", bin_name: str = "m.bin") -> t
     idx = np.array([0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3], np.uint32)
     blob = pos.tobytes() + idx.tobytes()
     doc = {
-        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
         "buffers": [{"uri": bin_name, "byteLength": len(blob)}],
-        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 48}],
-        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
-                       "min": [0, 0, 0], "max": [1, 1, 1]},
-                      {"bufferView": 1, "componentType": 5125, "count": 12, "type": "SCALAR"}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
+            {"buffer": 0, "byteOffset": 48, "byteLength": 48},
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 1]},
+            {"bufferView": 1, "componentType": 5125, "count": 12, "type": "SCALAR"},
+        ],
     }
     folder.mkdir(parents=True, exist_ok=True)
     (folder / bin_name).write_bytes(blob)
@@ -100,9 +107,21 @@ def _tiny_recon_setup():
     v = mesh.vertices
     frames = np.stack([v, v + [0.02, 0.0, 0.0], v + [0.04, 0.01, 0.0]]).astype(np.float32)
     grid, _ = splat_grid(mesh, frames, size=32, views=3)
-    cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=32, static_iters=5,
-                 iterations=12, global_iters=4, num_control_points=8, checkpoint_every=5, perceptual="none",
-                 hidden_pick=False, track_weight=0)
+    cfg = preset(
+        "quick",
+        face_gaussians=False,
+        silhouette_band=0,
+        mask_weight=0.5,
+        resolution=32,
+        static_iters=5,
+        iterations=12,
+        global_iters=4,
+        num_control_points=8,
+        checkpoint_every=5,
+        perceptual="none",
+        hidden_pick=False,
+        track_weight=0,
+    )
     return mesh, grid, cfg
 
 
@@ -162,8 +181,15 @@ import sys
 open(sys.argv[1] + "/mesh.obj", "w").write("v 0 0 0\\nv 1 0 0\\nv 0 1 0\\nv 0 0 1\\nf 1 3 2\\nf 1 2 4\\nf 1 4 3\\nf 2 3 4\\n")
 """
 
-_HOSTILE_PROMPTS = ["a fox $(touch {m})", "a fox `touch {m}`", "a fox; touch {m}", "a fox' ; touch {m} ; '",
-                    'a fox" ; touch {m} ; "', "a fox && touch {m} #", "a fox\n touch {m}"]
+_HOSTILE_PROMPTS = [
+    "a fox $(touch {m})",
+    "a fox `touch {m}`",
+    "a fox; touch {m}",
+    "a fox' ; touch {m} ; '",
+    'a fox" ; touch {m} ; "',
+    "a fox && touch {m} #",
+    "a fox\n touch {m}",
+]
 
 
 @pytest.mark.parametrize("quote", ["{prompt}", "'{prompt}'", '"{prompt}"', "--prompt={prompt}", "'--prompt {prompt}'"])
@@ -194,24 +220,30 @@ def test_command_template_never_runs_the_prompt(tmp_path, monkeypatch, quote):
 def test_command_template_refusals_and_timeout(tmp_path):
     from t2bs.character.backends import generate
 
-    for tmpl, says in (("sh -c 'gen --prompt {prompt} --out {out}'", "shell script"),
-                       ("bash -lc \"x {prompt}\" {out}", "shell script"),
-                       ("python3 -c \"print('{prompt}')\" {out}", "inline code"),
-                       ("/usr/bin/env perl -e 'print q({prompt})' {out}", "inline code"),
-                       ("gen {prompt.__class__} {out}", "unknown placeholder {prompt.__class__}"),
-                       ("gen {prompt!r} {out}", "unknown placeholder {prompt!r}"),
-                       ("gen {0} {out}", "unknown placeholder {0}"),
-                       ("gen 'unbalanced {out}", "cannot be parsed"),
-                       ("gen {prompt {out}", "malformed placeholder"),
-                       ("/no/such/program {out}", "cannot start '/no/such/program'")):
+    for tmpl, says in (
+        ("sh -c 'gen --prompt {prompt} --out {out}'", "shell script"),
+        ('bash -lc "x {prompt}" {out}', "shell script"),
+        ("python3 -c \"print('{prompt}')\" {out}", "inline code"),
+        ("/usr/bin/env perl -e 'print q({prompt})' {out}", "inline code"),
+        ("gen {prompt.__class__} {out}", "unknown placeholder {prompt.__class__}"),
+        ("gen {prompt!r} {out}", "unknown placeholder {prompt!r}"),
+        ("gen {0} {out}", "unknown placeholder {0}"),
+        ("gen 'unbalanced {out}", "cannot be parsed"),
+        ("gen {prompt {out}", "malformed placeholder"),
+        ("/no/such/program {out}", "cannot start '/no/such/program'"),
+    ):
         with pytest.raises(UserError, match=re_escape(says)):
             generate("a fox", backend="command", command=tmpl)
     import time
 
     t0 = time.monotonic()
     with pytest.raises(UserError, match="did not finish within 1 s"):
-        generate("x", backend="command", command=f"{sys.executable} -c 'import time; time.sleep(60)' {{out}}",
-                 command_timeout=1)
+        generate(
+            "x",
+            backend="command",
+            command=f"{sys.executable} -c 'import time; time.sleep(60)' {{out}}",
+            command_timeout=1,
+        )
     assert time.monotonic() - t0 < 15
 
 
@@ -224,8 +256,18 @@ def re_escape(text: str) -> str:
 # ------------------------------------------------------------------------ glTF uri containment
 
 
-@pytest.mark.parametrize("uri", ["../outside.bin", "../../../../../../etc/passwd", "/etc/passwd", "sub/../../outside.bin",
-                                 "file:///etc/passwd", "http://example.com/m.bin", "link.bin"])
+@pytest.mark.parametrize(
+    "uri",
+    [
+        "../outside.bin",
+        "../../../../../../etc/passwd",
+        "/etc/passwd",
+        "sub/../../outside.bin",
+        "file:///etc/passwd",
+        "http://example.com/m.bin",
+        "link.bin",
+    ],
+)
 def test_gltf_buffer_uri_stays_in_its_folder(tmp_path, uri):
     from t2bs.geometry.io import load_mesh
 
@@ -254,8 +296,10 @@ def good_project(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("good") / "proj"
     capsys = _NullCapture()
-    for argv in (["character", GOOD_PROMPT, "-o", root, "--size", 32],
-                 ["videos", root, "--prompts", "smiling", "--samples", 1, "--frames", 3, "--size", 32, "--views", 3]):
+    for argv in (
+        ["character", GOOD_PROMPT, "-o", root, "--size", 32],
+        ["videos", root, "--prompts", "smiling", "--samples", 1, "--frames", 3, "--size", 32, "--views", 3],
+    ):
         rc, _, err = run_cli(argv, capsys)
         assert rc == 0, err
     recon = root / "recon" / "smiling-s0"
@@ -369,35 +413,61 @@ MESH_CASES = {
     "float indices": _gltf_case(lambda d, f: _set(d, ["accessors", 1, "componentType"], 5126)),
     "bad accessor type": _gltf_case(lambda d, f: _set(d, ["accessors", 0, "type"], "VEC7")),
     "node is its own child": _gltf_case(lambda d, f: _set(d, ["nodes", 0, "children"], [0])),
-    "node cycle of two": _gltf_case(lambda d, f: d.__setitem__("nodes", [{"mesh": 0, "children": [1]}, {"children": [0]}])),
+    "node cycle of two": _gltf_case(
+        lambda d, f: d.__setitem__("nodes", [{"mesh": 0, "children": [1]}, {"children": [0]}])
+    ),
     "node index out of range": _gltf_case(lambda d, f: _set(d, ["scenes", 0, "nodes"], [5])),
     "negative node index": _gltf_case(lambda d, f: _set(d, ["scenes", 0, "nodes"], [-1])),
     "mesh index out of range": _gltf_case(lambda d, f: _set(d, ["nodes", 0, "mesh"], 3)),
     "scene index out of range": _gltf_case(lambda d, f: d.__setitem__("scene", 4)),
-    "accessor index out of range": _gltf_case(lambda d, f: _set(d, ["meshes", 0, "primitives", 0, "attributes", "POSITION"], 9)),
+    "accessor index out of range": _gltf_case(
+        lambda d, f: _set(d, ["meshes", 0, "primitives", 0, "attributes", "POSITION"], 9)
+    ),
     "bufferView index out of range": _gltf_case(lambda d, f: _set(d, ["accessors", 0, "bufferView"], 7)),
     "buffer index out of range": _gltf_case(lambda d, f: _set(d, ["bufferViews", 0, "buffer"], 2)),
     "material index out of range": _gltf_case(lambda d, f: _set(d, ["meshes", 0, "primitives", 0, "material"], 3)),
-    "missing texture file": _gltf_case(lambda d, f: (d.update({
-        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}], "textures": [{"source": 0}],
-        "images": [{"uri": "gone.png"}]}), _set(d, ["meshes", 0, "primitives", 0, "attributes", "TEXCOORD_0"], 0),
-        _set(d, ["meshes", 0, "primitives", 0, "material"], 0))[-1]),
-    "texture index out of range": _gltf_case(lambda d, f: (d.update({
-        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 5}}}]}),
-        _set(d, ["meshes", 0, "primitives", 0, "attributes", "TEXCOORD_0"], 0),
-        _set(d, ["meshes", 0, "primitives", 0, "material"], 0))[-1]),
+    "missing texture file": _gltf_case(
+        lambda d, f: (
+            d.update(
+                {
+                    "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+                    "textures": [{"source": 0}],
+                    "images": [{"uri": "gone.png"}],
+                }
+            ),
+            _set(d, ["meshes", 0, "primitives", 0, "attributes", "TEXCOORD_0"], 0),
+            _set(d, ["meshes", 0, "primitives", 0, "material"], 0),
+        )[-1]
+    ),
+    "texture index out of range": _gltf_case(
+        lambda d, f: (
+            d.update({"materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 5}}}]}),
+            _set(d, ["meshes", 0, "primitives", 0, "attributes", "TEXCOORD_0"], 0),
+            _set(d, ["meshes", 0, "primitives", 0, "material"], 0),
+        )[-1]
+    ),
     "buffer uri '.'": _gltf_case(lambda d, f: _set(d, ["buffers", 0, "uri"], ".")),
     "buffer uri outside the folder": _gltf_case(lambda d, f: _set(d, ["buffers", 0, "uri"], "../../../../etc/passwd")),
     "buffer file missing": _gltf_case(lambda d, f: _set(d, ["buffers", 0, "uri"], "nope.bin")),
-    "buffer .bin is a folder": _gltf_case(lambda d, f: ((f / "dir.bin").mkdir(), _set(d, ["buffers", 0, "uri"], "dir.bin"))[1]),
-    "malformed data uri": _gltf_case(lambda d, f: _set(d, ["buffers", 0, "uri"], "data:application/octet-stream;base64,@@@")),
+    "buffer .bin is a folder": _gltf_case(
+        lambda d, f: ((f / "dir.bin").mkdir(), _set(d, ["buffers", 0, "uri"], "dir.bin"))[1]
+    ),
+    "malformed data uri": _gltf_case(
+        lambda d, f: _set(d, ["buffers", 0, "uri"], "data:application/octet-stream;base64,@@@")
+    ),
     "huge accessor count": _gltf_case(lambda d, f: _set(d, ["accessors", 0, "count"], 1 << 40)),
-    "NaN vertex": _gltf_case(lambda d, f: np.array([[np.nan, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32).tobytes()
-                             + (f / "m.bin").read_bytes()[48:]),
-    "face index past the vertices": _gltf_case(lambda d, f: (f / "m.bin").read_bytes()[:48]
-                                               + np.array([0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 9], np.uint32).tobytes()),
-    "zero-area faces": _gltf_case(lambda d, f: np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], np.float32).tobytes()
-                                  + (f / "m.bin").read_bytes()[48:]),
+    "NaN vertex": _gltf_case(
+        lambda d, f: np.array([[np.nan, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32).tobytes()
+        + (f / "m.bin").read_bytes()[48:]
+    ),
+    "face index past the vertices": _gltf_case(
+        lambda d, f: (f / "m.bin").read_bytes()[:48]
+        + np.array([0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 9], np.uint32).tobytes()
+    ),
+    "zero-area faces": _gltf_case(
+        lambda d, f: np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], np.float32).tobytes()
+        + (f / "m.bin").read_bytes()[48:]
+    ),
     "no meshes": _gltf_case(lambda d, f: d.__setitem__("meshes", [])),
     "points, not triangles": _gltf_case(lambda d, f: _set(d, ["meshes", 0, "primitives", 0, "mode"], 0)),
     "json garbage .gltf": _file_case("x.gltf", "{not json"),
@@ -405,8 +475,11 @@ MESH_CASES = {
     "random bytes .glb": _file_case("r.glb", bytes(range(256)) * 4),
     "truncated .glb": _gltf_case(_tetra_glb),
     "obj text garbage": _file_case("g.obj", "hello world\nthis is not a mesh\n"),
-    "ply with points only": _file_case("p.ply", "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-                                               "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"),
+    "ply with points only": _file_case(
+        "p.ply",
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n",
+    ),
     "unsupported suffix": _file_case("m.txt", "v 0 0 0"),
     "mesh over the size limit": _big_obj,
 }
@@ -468,7 +541,20 @@ BAD_OPTIONS = {
     # videos
     "videos --size abc": ["videos", "{P}", "--size", "abc"],
     "videos --size 0": ["videos", "{P}", "--size", "0"],
-    "videos 1 frame": ["videos", "{P}", "--frames", "1", "--size", "32", "--views", "3", "--prompts", "smiling", "--samples", "1"],
+    "videos 1 frame": [
+        "videos",
+        "{P}",
+        "--frames",
+        "1",
+        "--size",
+        "32",
+        "--views",
+        "3",
+        "--prompts",
+        "smiling",
+        "--samples",
+        "1",
+    ],
     "videos even views": ["videos", "{P}", "--views", "4"],
     "videos 0 samples": ["videos", "{P}", "--samples", "0"],
     "videos unknown defects": ["videos", "{P}", "--defects", "bogus"],
@@ -483,11 +569,58 @@ BAD_OPTIONS = {
     "character --size 3": ["character", "a fox", "-o", "{P}", "--size", "3"],
     "character empty prompt": ["character", "  ", "-o", "{P}"],
     "character unknown backend": ["character", "a fox", "-o", "{P}", "--backend", "nope"],
-    "character sh -c template": ["character", "a fox", "-o", "{P}", "--backend", "command", "--command", "sh -c 'gen {prompt} {out}'"],
-    "character {prompt.foo} template": ["character", "a fox", "-o", "{P}", "--backend", "command", "--command", "gen {prompt.foo} {out}"],
-    "character template without {out}": ["character", "a fox", "-o", "{P}", "--backend", "command", "--command", "gen {prompt}"],
-    "character command timeout nan": ["character", "a fox", "-o", "{P}", "--backend", "command", "--command", "gen {out}", "--command-timeout", "nan"],
-    "character missing diffusers weights": ["character", "a fox", "-o", "{P}", "--backend", "diffusers", "--checkpoint", "{T}/none"],
+    "character sh -c template": [
+        "character",
+        "a fox",
+        "-o",
+        "{P}",
+        "--backend",
+        "command",
+        "--command",
+        "sh -c 'gen {prompt} {out}'",
+    ],
+    "character {prompt.foo} template": [
+        "character",
+        "a fox",
+        "-o",
+        "{P}",
+        "--backend",
+        "command",
+        "--command",
+        "gen {prompt.foo} {out}",
+    ],
+    "character template without {out}": [
+        "character",
+        "a fox",
+        "-o",
+        "{P}",
+        "--backend",
+        "command",
+        "--command",
+        "gen {prompt}",
+    ],
+    "character command timeout nan": [
+        "character",
+        "a fox",
+        "-o",
+        "{P}",
+        "--backend",
+        "command",
+        "--command",
+        "gen {out}",
+        "--command-timeout",
+        "nan",
+    ],
+    "character missing diffusers weights": [
+        "character",
+        "a fox",
+        "-o",
+        "{P}",
+        "--backend",
+        "diffusers",
+        "--checkpoint",
+        "{T}/none",
+    ],
     "render unreadable mesh path": ["render", "{T}/none.glb", "-o", "{P}"],
     "render mesh is a folder": ["render", "{T}", "-o", "{P}"],
     "render --views 0": ["render", "{T}/ok.obj", "-o", "{P}", "--views", "0"],
@@ -573,38 +706,94 @@ def _recon_vertices(root: Path, fn) -> bytes:
 GRID = "videos/smiling-s0"
 PROJECT_CASES = {
     # (file in the project, new bytes from the project root, command)
-    "mesh.glb truncated -> reconstruct": ("character/mesh.glb", lambda r: (r / "character/mesh.glb").read_bytes()[:500],
-                                          ["reconstruct", "{P}", "--iterations", "2"]),
-    "mesh.glb truncated -> blendshapes": ("character/mesh.glb", lambda r: (r / "character/mesh.glb").read_bytes()[:500],
-                                          ["blendshapes", "{P}", "--force"]),
+    "mesh.glb truncated -> reconstruct": (
+        "character/mesh.glb",
+        lambda r: (r / "character/mesh.glb").read_bytes()[:500],
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "mesh.glb truncated -> blendshapes": (
+        "character/mesh.glb",
+        lambda r: (r / "character/mesh.glb").read_bytes()[:500],
+        ["blendshapes", "{P}", "--force"],
+    ),
     "mesh.glb empty -> videos": ("character/mesh.glb", lambda r: b"", ["videos", "{P}", "--seed", "4"]),
     "mesh.glb garbage -> landmarks": ("character/mesh.glb", lambda r: b"glTF garbage" * 9, ["landmarks", "{P}"]),
     "mesh.glb garbage -> view": ("character/mesh.glb", lambda r: b"glTF garbage" * 9, ["view", "{P}", "--port", "0"]),
-    "grid.json garbage -> reconstruct": (f"{GRID}/grid.json", lambda r: b"{garbage", ["reconstruct", "{P}", "--iterations", "2"]),
-    "grid.json a list -> reconstruct": (f"{GRID}/grid.json", lambda r: b"[1, 2]", ["reconstruct", "{P}", "--iterations", "2"]),
-    "cameras.json garbage -> reconstruct": (f"{GRID}/cameras.json", lambda r: b"\xff\xfe", ["reconstruct", "{P}", "--iterations", "2"]),
-    "frame png truncated -> reconstruct": (f"{GRID}/frames/view00/0001.png",
-                                           lambda r: (r / GRID / "frames/view00/0001.png").read_bytes()[:40],
-                                           ["reconstruct", "{P}", "--iterations", "2"]),
-    "masks.npz garbage -> reconstruct": (f"{GRID}/masks.npz", lambda r: b"PK\x03\x04garbage", ["reconstruct", "{P}", "--iterations", "2"]),
-    "gt_vertices.npy empty -> blendshapes": (f"{GRID}/gt_vertices.npy", lambda r: b"", ["blendshapes", "{P}", "--source", "gt", "--force"]),
-    "gt_vertices.npy NaN -> blendshapes": (f"{GRID}/gt_vertices.npy",
-                                          lambda r: _npy_bytes(np.full((3, 4, 3), np.nan, np.float32)),
-                                          ["blendshapes", "{P}", "--source", "gt", "--force"]),
-    "vertices.npy empty -> blendshapes": ("recon/smiling-s0/vertices.npy", lambda r: b"", ["blendshapes", "{P}", "--force"]),
-    "vertices.npy zero frames -> blendshapes": ("recon/smiling-s0/vertices.npy",
-                                               lambda r: _recon_vertices(r, lambda v: v[:0]), ["blendshapes", "{P}", "--force"]),
-    "vertices.npy NaN -> blendshapes": ("recon/smiling-s0/vertices.npy",
-                                        lambda r: _recon_vertices(r, lambda v: v * np.nan), ["blendshapes", "{P}", "--force"]),
-    "vertices.npy [T, N, 2] -> blendshapes": ("recon/smiling-s0/vertices.npy",
-                                              lambda r: _recon_vertices(r, lambda v: v[..., :2]), ["blendshapes", "{P}", "--force"]),
-    "vertices.npy wrong N -> blendshapes": ("recon/smiling-s0/vertices.npy",
-                                            lambda r: _recon_vertices(r, lambda v: v[:, :7]), ["blendshapes", "{P}", "--force"]),
-    "vertices.npy pickled object -> blendshapes": ("recon/smiling-s0/vertices.npy",
-                                                   lambda r: _npy_bytes(np.array([{"a": 1}], dtype=object)),
-                                                   ["blendshapes", "{P}", "--force"]),
-    "model.npz NaN -> retarget": ("blendshapes/model.npz", _nan_model, ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"]),
-    "model.npz garbage -> retarget": ("blendshapes/model.npz", lambda r: b"garbage", ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"]),
+    "grid.json garbage -> reconstruct": (
+        f"{GRID}/grid.json",
+        lambda r: b"{garbage",
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "grid.json a list -> reconstruct": (
+        f"{GRID}/grid.json",
+        lambda r: b"[1, 2]",
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "cameras.json garbage -> reconstruct": (
+        f"{GRID}/cameras.json",
+        lambda r: b"\xff\xfe",
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "frame png truncated -> reconstruct": (
+        f"{GRID}/frames/view00/0001.png",
+        lambda r: (r / GRID / "frames/view00/0001.png").read_bytes()[:40],
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "masks.npz garbage -> reconstruct": (
+        f"{GRID}/masks.npz",
+        lambda r: b"PK\x03\x04garbage",
+        ["reconstruct", "{P}", "--iterations", "2"],
+    ),
+    "gt_vertices.npy empty -> blendshapes": (
+        f"{GRID}/gt_vertices.npy",
+        lambda r: b"",
+        ["blendshapes", "{P}", "--source", "gt", "--force"],
+    ),
+    "gt_vertices.npy NaN -> blendshapes": (
+        f"{GRID}/gt_vertices.npy",
+        lambda r: _npy_bytes(np.full((3, 4, 3), np.nan, np.float32)),
+        ["blendshapes", "{P}", "--source", "gt", "--force"],
+    ),
+    "vertices.npy empty -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: b"",
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "vertices.npy zero frames -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: _recon_vertices(r, lambda v: v[:0]),
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "vertices.npy NaN -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: _recon_vertices(r, lambda v: v * np.nan),
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "vertices.npy [T, N, 2] -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: _recon_vertices(r, lambda v: v[..., :2]),
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "vertices.npy wrong N -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: _recon_vertices(r, lambda v: v[:, :7]),
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "vertices.npy pickled object -> blendshapes": (
+        "recon/smiling-s0/vertices.npy",
+        lambda r: _npy_bytes(np.array([{"a": 1}], dtype=object)),
+        ["blendshapes", "{P}", "--force"],
+    ),
+    "model.npz NaN -> retarget": (
+        "blendshapes/model.npz",
+        _nan_model,
+        ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"],
+    ),
+    "model.npz garbage -> retarget": (
+        "blendshapes/model.npz",
+        lambda r: b"garbage",
+        ["retarget", "{P}", "--driver", "{T}/text.mp4", "-o", "{P}/retarget/drv"],
+    ),
     "model.npz garbage -> landmarks": ("blendshapes/model.npz", lambda r: b"garbage", ["landmarks", "{P}"]),
 }
 
@@ -637,14 +826,18 @@ def test_nan_model_leaves_the_previous_retarget_outputs(project, tmp_path, capsy
 def test_corrupt_manifest_landmarks_and_done_markers_recover(project, capsys):
     """Derived files that can be remade are remade, with a warning, instead of failing every re-run."""
     from t2bs.project import Project, is_done
-    from t2bs.retarget.commands import _read_landmarks
+    from t2bs.retarget.stage import _read_landmarks
 
     root, _ = project
     (root / "manifest.json").write_text("{torn")
     assert Project(root).manifest() == {"stages": {}}
     assert "manifest.json: not valid JSON" in capsys.readouterr().err
     (root / "landmarks").mkdir(exist_ok=True)
-    for bad in ("{torn", '{"vertex_ids": [1, 2]}', '{"vertex_ids": ' + json.dumps(list(range(10**6, 10**6 + 20))) + "}"):
+    for bad in (
+        "{torn",
+        '{"vertex_ids": [1, 2]}',
+        '{"vertex_ids": ' + json.dumps(list(range(10**6, 10**6 + 20))) + "}",
+    ):
         (root / "landmarks" / "landmarks.json").write_text(bad)
         assert _read_landmarks(root / "landmarks" / "landmarks.json", 100) is None
         assert "detecting the landmarks again" in capsys.readouterr().out
@@ -665,16 +858,19 @@ def _fail_on(monkeypatch, what: str, err: int):
 
     text = _os.strerror(err)
     if what == "mkstemp":  # no file can be created (read-only file system, no permission)
+
         def fake(*a, **k):
             raise OSError(err, text, str(k.get("dir", "?")))
 
         monkeypatch.setattr(_tempfile, "mkstemp", fake)
     elif what == "replace":  # the disk fills up while the outputs are put in place
+
         def fake(src, dst, *a, **k):
             raise OSError(err, text, str(src), str(dst))
 
         monkeypatch.setattr(_os, "replace", fake)
     elif what == "lock":  # the project folder itself is not writable
+
         def fake(path, *a, **k):
             raise OSError(err, text, str(path))
 
@@ -686,7 +882,22 @@ FAULTS = {"read-only": ("mkstemp", 30), "disk full": ("replace", 28), "no permis
 FAULT_COMMANDS = {
     "render": ["render", "{T}/ok.obj", "-o", "{P}", "--size", "16", "--views", "1"],
     "character": ["character", "a fox", "-o", "{P}", "--size", "16"],
-    "videos": ["videos", "{P}", "--seed", "5", "--frames", "2", "--size", "16", "--views", "1", "--prompts", "smiling", "--samples", "1"],
+    "videos": [
+        "videos",
+        "{P}",
+        "--seed",
+        "5",
+        "--frames",
+        "2",
+        "--size",
+        "16",
+        "--views",
+        "1",
+        "--prompts",
+        "smiling",
+        "--samples",
+        "1",
+    ],
     "blendshapes": ["blendshapes", "{P}", "--force"],
     "landmarks": ["landmarks", "{P}", "--backend", "parts"],
 }
@@ -736,7 +947,9 @@ def test_second_run_on_a_project_is_refused_while_the_first_holds_it(project, ca
     try:
         assert holder.stdout.readline().strip() == "locked"
         rc, _, err = run_cli(["blendshapes", root, "--force"], capsys)
-        assert_one_error(rc, err, "another t2bs command is working on this project", f"pid {holder.pid}", "t2bs reconstruct")
+        assert_one_error(
+            rc, err, "another t2bs command is working on this project", f"pid {holder.pid}", "t2bs reconstruct"
+        )
         assert project_files(root) == before
     finally:
         holder.kill()  # kill -9: the kernel drops the lock with the process
@@ -762,8 +975,12 @@ def test_videos_rerun_killed_midway_leaves_the_previous_grid_whole(project, caps
     settings = ["--prompts", "smiling", "--samples", "1", "--size", "32", "--views", "3"]
     env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src"), "OMP_NUM_THREADS": "1"}
     # Other settings (more frames) regenerate the grid; kill -9 once its new frames are being written.
-    run = subprocess.Popen([sys.executable, "-m", "t2bs.cli", "videos", str(root), *settings, "--frames", "40"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "t2bs.cli", "videos", str(root), *settings, "--frames", "40"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not list((root / GRID).glob(".t2bs-staging-*/frames/view00/0000.png")):
         time.sleep(0.01)
@@ -784,7 +1001,7 @@ def test_videos_rerun_killed_midway_leaves_the_previous_grid_whole(project, caps
 
 
 def test_ctrl_c_prints_the_interrupted_message(project, capsys, monkeypatch):
-    import t2bs.video.commands as vc
+    import t2bs.video.stage as vc
     from t2bs.errors import INTERRUPTED
 
     root, before = project
@@ -793,8 +1010,25 @@ def test_ctrl_c_prints_the_interrupted_message(project, capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(vc, "make_grid", interrupted)
-    rc, _, err = run_cli(["videos", root, "--seed", "9", "--frames", "2", "--size", "16", "--views", "1",
-                          "--prompts", "smiling", "--samples", "1"], capsys)
+    rc, _, err = run_cli(
+        [
+            "videos",
+            root,
+            "--seed",
+            "9",
+            "--frames",
+            "2",
+            "--size",
+            "16",
+            "--views",
+            "1",
+            "--prompts",
+            "smiling",
+            "--samples",
+            "1",
+        ],
+        capsys,
+    )
     assert rc == 130 and INTERRUPTED in err and "Traceback" not in err
     assert project_files(root) == before
 
@@ -820,8 +1054,13 @@ def test_viewer_exits_at_once_on_an_unbindable_host(good_project):
 
     env = {**_os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "t2bs.cli", "view", str(good_project), "--host", "10.255.255.1"],
-                       capture_output=True, text=True, env=env, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "t2bs.cli", "view", str(good_project), "--host", "10.255.255.1"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
     assert r.returncode == 2 and r.stderr.count("error:") == 1 and "cannot listen" in r.stderr, r.stderr
     assert time.monotonic() - t0 < 30
 
@@ -837,8 +1076,23 @@ def test_import_grid_takes_a_flat_folder_with_the_default_views(project, tmp_pat
     flat.mkdir()
     for i in range(15 * 2):  # view-major: view 0's two frames first
         Image.fromarray(np.full((16, 16, 3), i * 8, np.uint8)).save(flat / f"img{i:03d}.png")
-    rc, out, err = run_cli(["videos", root, "--import-grid", flat, "--expression", "smiling", "--sample", 1,
-                            "--views", 15, "--shading", "unlit"], capsys)
+    rc, out, err = run_cli(
+        [
+            "videos",
+            root,
+            "--import-grid",
+            flat,
+            "--expression",
+            "smiling",
+            "--sample",
+            1,
+            "--views",
+            15,
+            "--shading",
+            "unlit",
+        ],
+        capsys,
+    )
     assert rc == 0, err
     grid = load_grid(root / "videos" / "smiling-s1")
     assert grid.frames.shape == (15, 2, 16, 16, 3) and grid.frames[1, 0, 0, 0, 0] == 16  # view 1, frame 0 = image 2
@@ -868,7 +1122,11 @@ def test_output_set_replaces_a_set_whole_or_not_at_all(tmp_path):
         with output_set(final, marker="report.json") as stage:
             (stage / "weights.csv").write_text("new")
             raise RuntimeError("solve failed")
-    assert {p.name: p.read_text() for p in final.iterdir()} == {"weights.csv": "old", "report.json": "old", "mine.txt": "the user's"}
+    assert {p.name: p.read_text() for p in final.iterdir()} == {
+        "weights.csv": "old",
+        "report.json": "old",
+        "mine.txt": "the user's",
+    }
     staged = OutputSet(final, marker="report.json")  # never committed: removed when the object goes
     (staged.folder / "weights.csv").write_text("half")
     del staged
@@ -877,7 +1135,11 @@ def test_output_set_replaces_a_set_whole_or_not_at_all(tmp_path):
     with output_set(final, marker="report.json") as stage:
         for name in ("weights.csv", "report.json"):
             (stage / name).write_text("new")
-    assert {p.name: p.read_text() for p in final.iterdir()} == {"weights.csv": "new", "report.json": "new", "mine.txt": "the user's"}
+    assert {p.name: p.read_text() for p in final.iterdir()} == {
+        "weights.csv": "new",
+        "report.json": "new",
+        "mine.txt": "the user's",
+    }
     with output_set(final, marker="done.json", exclusive=True) as stage:  # a folder that holds only this set
         (stage / "done.json").write_text("{}")
     assert sorted(p.name for p in final.iterdir()) == ["done.json"]

@@ -7,7 +7,9 @@ from t2bs.geometry.io import load_mesh, save_mesh
 from t2bs.geometry.mesh import CANONICAL_DIAGONAL, Mesh, detect_facing, merge_meshes, normalize
 
 
-@pytest.mark.parametrize("name,vertices,targets", [("turtle.glb", 1922, 11), ("facecap.glb", None, 52), ("vipe_hero_head.glb", None, 16)])
+@pytest.mark.parametrize(
+    "name,vertices,targets", [("turtle.glb", 1922, 11), ("facecap.glb", None, 52), ("vipe_hero_head.glb", None, 16)]
+)
 def test_assets_load_with_named_morph_targets(name, vertices, targets):
     mesh = load_mesh(asset(name))
     assert len(mesh.morph_targets) == targets
@@ -67,7 +69,9 @@ def test_normalize_canonical_frame_and_facing():
     assert abs(np.linalg.norm(hi - lo) - CANONICAL_DIAGONAL) < 1e-5
     # Morph offsets are rotated and scaled with the mesh.
     k = "blink_l"
-    np.testing.assert_allclose(canon.morph_targets[k], mesh.morph_targets[k] @ np.diag([-1, 1, -1]).T * transform["scale"], atol=1e-6)
+    np.testing.assert_allclose(
+        canon.morph_targets[k], mesh.morph_targets[k] @ np.diag([-1, 1, -1]).T * transform["scale"], atol=1e-6
+    )
 
 
 def test_ply_save_and_load(tmp_path):

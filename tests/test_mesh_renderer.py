@@ -2,14 +2,30 @@ import numpy as np
 import pytest
 
 from conftest import asset
-from t2bs.commands_render import canonical_character
+from t2bs.character.render_stage import canonical_character
 from t2bs.geometry.camera import frontal_camera, orbit_cameras
 from t2bs.geometry.mesh import Mesh
 
 
 def _cube(size=0.2):
     v = np.array([[x, y, z] for x in (-size, size) for y in (-size, size) for z in (-size, size)], np.float32)
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int32)
+    f = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ],
+        np.int32,
+    )
     return Mesh(v, f, vertex_colors=np.tile([[1.0, 0.0, 0.0]], (8, 1)).astype(np.float32))
 
 
@@ -48,8 +64,9 @@ def test_assets_are_centred_and_face_the_camera(mesh_renderer, name):
     # than from behind, and the frontal image differs from both +-60 degree views.
     visible = mesh_renderer.vertex_visibility(mesh, frontal_camera(128))
     motion = np.max([np.linalg.norm(d, axis=1) for d in mesh.morph_targets.values()], axis=0)
-    behind = mesh_renderer.vertex_visibility(mesh, frontal_camera(128).__class__(
-        cams[7].K, cams[7].world_to_camera @ np.diag([-1.0, 1, -1, 1]), 128, 128))
+    behind = mesh_renderer.vertex_visibility(
+        mesh, frontal_camera(128).__class__(cams[7].K, cams[7].world_to_camera @ np.diag([-1.0, 1, -1, 1]), 128, 128)
+    )
     assert motion[visible].sum() > 3 * motion[behind].sum()
     for side in (cams[0], cams[-1]):
         diff = np.abs(mesh_renderer.render(mesh, side).rgb - front.rgb).mean()

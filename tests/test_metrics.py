@@ -77,8 +77,22 @@ def test_geometry_metrics_and_summary_table():
     geo = geometry_metrics(half, gt, v, f, seen=seen)
     assert geo["p2p_seen"] == 0 and geo["seen_fraction"] == pytest.approx(0.5)
     assert geo["p2p_moving"] == pytest.approx(0.5 * static["p2p_moving"], rel=1e-5)
-    rows = [{"asset": "cube", "prompt": "p", "defects": "clean", "method": m, "p2p_all": x, "p2p_moving": x,
-             "p2p_seen": x / 2, "nc": x, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0} for m, x in (("full", 0.01), ("static", 0.04))]
+    rows = [
+        {
+            "asset": "cube",
+            "prompt": "p",
+            "defects": "clean",
+            "method": m,
+            "p2p_all": x,
+            "p2p_moving": x,
+            "p2p_seen": x / 2,
+            "nc": x,
+            "psnr": 30.0,
+            "ssim": 0.9,
+            "seconds": 1.0,
+        }
+        for m, x in (("full", 0.01), ("static", 0.04))
+    ]
     s = summarise(rows)
     assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_moving"] == pytest.approx(0.25)
     assert s["ratio_full_over_static"]["cube/p/clean"]["p2p_seen"] == pytest.approx(0.25)
@@ -94,13 +108,29 @@ def test_geometry_metrics_and_summary_table():
 
 def test_full_vs_ablations_counts_only_cases_both_ran():
     def row(asset, method, moving, seen=None):
-        r = {"asset": asset, "prompt": "p", "defects": "paper", "method": method, "p2p_all": moving,
-             "p2p_moving": moving, "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": 1.0}
+        r = {
+            "asset": asset,
+            "prompt": "p",
+            "defects": "paper",
+            "method": method,
+            "p2p_all": moving,
+            "p2p_moving": moving,
+            "nc": 0.01,
+            "psnr": 30.0,
+            "ssim": 0.9,
+            "seconds": 1.0,
+        }
         return r if seen is None else {**r, "p2p_seen": seen}
 
-    rows = [row("a", "full", 0.010, 0.020), row("a", "no_lbs", 0.012, 0.018), row("a", "static", 0.05, 0.05),
-            row("b", "full", 0.004, 0.006), row("b", "no_lbs", 0.003, 0.007), row("b", "no_view", 0.005, 0.008),
-            row("c", "no_view", 0.001, 0.001)]  # c has no full row: left out of the comparison
+    rows = [
+        row("a", "full", 0.010, 0.020),
+        row("a", "no_lbs", 0.012, 0.018),
+        row("a", "static", 0.05, 0.05),
+        row("b", "full", 0.004, 0.006),
+        row("b", "no_lbs", 0.003, 0.007),
+        row("b", "no_view", 0.005, 0.008),
+        row("c", "no_view", 0.001, 0.001),
+    ]  # c has no full row: left out of the comparison
     vs = summarise(rows)["full_vs"]
     assert set(vs) == {"paper/no_lbs", "paper/no_view"}
     assert vs["paper/no_lbs"]["cases"] == 2 and vs["paper/no_view"]["cases"] == 1
@@ -128,7 +158,9 @@ def test_seen_vertices_union_over_frames_and_cameras(mesh_renderer):
     out[8:] += [0.35, 0.0, 0.0]  # the inner cube moved beside the outer one
     cam = frontal_camera(256, elevation_deg=0.0)
     front = mesh.vertices[:, 2] > 0
-    np.testing.assert_array_equal(seen_vertices(mesh, mesh.vertices[None], [cam], mesh_renderer), front & (np.arange(16) < 8))
+    np.testing.assert_array_equal(
+        seen_vertices(mesh, mesh.vertices[None], [cam], mesh_renderer), front & (np.arange(16) < 8)
+    )
     # (the inner cube's side facing the camera is too oblique for the depth test's tolerance)
     np.testing.assert_array_equal(seen_vertices(mesh, np.stack([mesh.vertices, out]), [cam], mesh_renderer), front)
 
@@ -141,14 +173,29 @@ def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
 
     def fake_case(name, mesh, prompt, defects, methods, *args, **kwargs):
         calls.append((name, prompt, tuple(methods)))
-        return [{"asset": name, "prompt": prompt, "defects": defects, "method": m, "p2p_all": 0.1, "p2p_moving": 0.2,
-                 "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": float(len(calls))} for m in methods]
+        return [
+            {
+                "asset": name,
+                "prompt": prompt,
+                "defects": defects,
+                "method": m,
+                "p2p_all": 0.1,
+                "p2p_moving": 0.2,
+                "nc": 0.01,
+                "psnr": 30.0,
+                "ssim": 0.9,
+                "seconds": float(len(calls)),
+            }
+            for m in methods
+        ]
 
     monkeypatch.setattr(bench_vcdgs, "run_case", fake_case)
     monkeypatch.setattr(bench_vcdgs, "load_asset", lambda spec: (spec, None))
     out = tmp_path / "bench.json"
+
     def run(methods, **kw):
         return bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], methods, json_path=out, **kw)
+
     first = run(["full", "static"])
     assert calls == [("a", "smiling", ("full", "static")), ("b", "smiling", ("full", "static"))]
     assert run(["full", "static"])["rows"] == first["rows"] and len(calls) == 2  # nothing recomputed
@@ -169,8 +216,21 @@ def _fake_case_in_a_process(name, mesh, prompt, defects, methods, *args):
     import time
 
     time.sleep(1.5 if name == "a" else 0.0)  # "a" finishes last
-    return [{"asset": name, "prompt": prompt, "defects": defects, "method": m, "p2p_all": 0.1, "p2p_moving": 0.2,
-             "nc": 0.01, "psnr": 30.0, "ssim": 0.9, "seconds": float(os.getpid())} for m in methods]
+    return [
+        {
+            "asset": name,
+            "prompt": prompt,
+            "defects": defects,
+            "method": m,
+            "p2p_all": 0.1,
+            "p2p_moving": 0.2,
+            "nc": 0.01,
+            "psnr": 30.0,
+            "ssim": 0.9,
+            "seconds": float(os.getpid()),
+        }
+        for m in methods
+    ]
 
 
 def test_benchmark_workers_run_cases_in_processes_and_keep_the_order(tmp_path, monkeypatch):
@@ -183,7 +243,12 @@ def test_benchmark_workers_run_cases_in_processes_and_keep_the_order(tmp_path, m
     monkeypatch.setattr(bench_vcdgs, "load_asset", lambda spec: (spec, None))
     out = tmp_path / "bench.json"
     res = bench_vcdgs.run_bench(["a", "b"], ["smiling"], ["clean"], ["full", "static"], json_path=out, workers=2)
-    assert [(r["asset"], r["method"]) for r in res["rows"]] == [("a", "full"), ("a", "static"), ("b", "full"), ("b", "static")]
+    assert [(r["asset"], r["method"]) for r in res["rows"]] == [
+        ("a", "full"),
+        ("a", "static"),
+        ("b", "full"),
+        ("b", "static"),
+    ]
     pids = {r["asset"]: r["seconds"] for r in res["rows"]}
     assert pids["a"] != pids["b"] and os.getpid() not in pids.values()
     assert json.loads(out.read_text())["rows"] == res["rows"]
@@ -196,12 +261,17 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     import typer
     from typer.testing import CliRunner
 
+    from t2bs.cli.bench import bench_vcdgs_command
     from t2bs.eval import bench_vcdgs
 
     seen = []
-    monkeypatch.setattr(bench_vcdgs, "run_bench", lambda *a, options=None, **kw: seen.append(options) or {"rows": [], "summary": summarise([])})
+    monkeypatch.setattr(
+        bench_vcdgs,
+        "run_bench",
+        lambda *a, options=None, **kw: seen.append(options) or {"rows": [], "summary": summarise([])},
+    )
     app = typer.Typer()
-    app.command()(bench_vcdgs.bench_vcdgs_command)
+    app.command()(bench_vcdgs_command)
     assert CliRunner().invoke(app, ["--asset", "facecap", "--time-budget", "0"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap", "--track-weight", "0.5"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
@@ -252,7 +322,10 @@ def test_expression_metrics_take_the_head_motion_out():
     assert m["expr_p2p"] == pytest.approx(0.5 * true_mean, rel=1e-6)
     assert m["expr_ratio"] == pytest.approx(0.5, rel=1e-6)
     # p2p over the moving vertices, by contrast, is dominated by the head motion.
-    assert p2p(oracle, gt, mask=moving_mask(gt, rest)) < p2p(np.repeat(rest[None], len(gt), 0), gt, mask=moving_mask(gt, rest)) / 3
+    assert (
+        p2p(oracle, gt, mask=moving_mask(gt, rest))
+        < p2p(np.repeat(rest[None], len(gt), 0), gt, mask=moving_mask(gt, rest)) / 3
+    )
     # A bump the other way: cosine -1.
     m = expression_metrics(np.einsum("tij,tnj->tni", rot, rest[None] - bump) + trans[:, None], gt, rest)
     assert m["cosine"] == pytest.approx(-1.0, abs=1e-6) and m["expr_ratio"] == pytest.approx(2.0, rel=1e-6)

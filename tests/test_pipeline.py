@@ -13,13 +13,41 @@ import pytest
 from conftest import asset
 
 # Small enough for CI: the turtle (1922 vertices), 2 prompts, 3 views, 6 frames at 48 px.
-TINY = ["--prompts", "blinking,opening the mouth extremely wide", "--frames", "6", "--size", "48", "--views", "3",
-        "--defects", "clean", "--iterations", "40", "--control-points", "48", "--seed", "3"]
+TINY = [
+    "--prompts",
+    "blinking,opening the mouth extremely wide",
+    "--frames",
+    "6",
+    "--size",
+    "48",
+    "--views",
+    "3",
+    "--defects",
+    "clean",
+    "--iterations",
+    "40",
+    "--control-points",
+    "48",
+    "--seed",
+    "3",
+]
 
 
 def create_args(out):
-    return [sys.executable, "-m", "t2bs.cli", "create", "a turtle", "-o", str(out), "--character-backend", "file",
-            "--mesh", str(asset("turtle.glb")), *TINY]
+    return [
+        sys.executable,
+        "-m",
+        "t2bs.cli",
+        "create",
+        "a turtle",
+        "-o",
+        str(out),
+        "--character-backend",
+        "file",
+        "--mesh",
+        str(asset("turtle.glb")),
+        *TINY,
+    ]
 
 
 def run_create(out):
@@ -45,7 +73,9 @@ def test_create_end_to_end_then_kill_and_resume(tmp_path):
 
     # Kill -9 while the first video is being reconstructed (its staging folder exists).
     killed = tmp_path / "killed"
-    proc = subprocess.Popen(create_args(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        create_args(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
     deadline = time.time() + 600
     while time.time() < deadline and not list((killed / "recon").glob(".staging-*")):
         assert proc.poll() is None, "create finished before it could be killed"

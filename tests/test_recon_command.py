@@ -12,7 +12,7 @@ import pytest
 from t2bs.errors import UserError
 from t2bs.geometry.io import load_mesh, save_mesh
 from t2bs.project import Project
-from t2bs.recon.commands import list_videos, reconstruct_video
+from t2bs.recon.stage import list_videos, reconstruct_video
 from t2bs.recon.config import parse_options, preset
 from t2bs.video.grid import save_grid
 
@@ -27,8 +27,19 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
     project = Project(tmp_path / "proj")
     save_mesh(mesh, project.mesh_path)
     save_grid(grid, project.path("videos", "smile-s0"))
-    cfg = preset("quick", face_gaussians=False, silhouette_band=0, mask_weight=0.5, resolution=32, static_iters=5, iterations=12, global_iters=4, num_control_points=8,
-                 checkpoint_every=5, perceptual="none")
+    cfg = preset(
+        "quick",
+        face_gaussians=False,
+        silhouette_band=0,
+        mask_weight=0.5,
+        resolution=32,
+        static_iters=5,
+        iterations=12,
+        global_iters=4,
+        num_control_points=8,
+        checkpoint_every=5,
+        perceptual="none",
+    )
     out, ran = reconstruct_video(project, project.path("videos", "smile-s0"), cfg, progress=False)
     assert ran
     for name in ("vertices.npy", "animation.glb", "state.pt", "preview.mp4", "metrics.json", "done.json"):
@@ -55,17 +66,34 @@ def test_reconstruct_writes_outputs_and_resumes(tmp_path):
 
 def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
     over = parse_options(["knn=4", "hidden_pick=off", "track_weight=0", "holdout_views=4,10", "perceptual=dssim"])
-    assert over == {"knn": 4, "hidden_pick": False, "track_weight": 0.0, "holdout_views": (4, 10), "perceptual": "dssim"}
+    assert over == {
+        "knn": 4,
+        "hidden_pick": False,
+        "track_weight": 0.0,
+        "holdout_views": (4, 10),
+        "perceptual": "dssim",
+    }
     assert type(over["track_weight"]) is float and type(over["knn"]) is int
     cfg = preset("quick", **over)
-    assert (cfg.knn, cfg.hidden_pick, cfg.holdout_views) == (4, False, (4, 10))  # --set turns off what is on by default
+    assert (cfg.control_points.knn, cfg.hidden_parts.hidden_pick, cfg.data.holdout_views) == (
+        4,
+        False,
+        (4, 10),
+    )  # --set turns off what is on by default
     assert parse_options(["hidden_pick=True"]) == {"hidden_pick": True}
-    for bad, says in ((["knn"], "KEY=VALUE"), (["no_such=1"], "no VCDGS option 'no_such'"),
-                      (["knn=four"], "not a valid int"), (["hidden_pick=maybe"], "not a valid bool")):
+    for bad, says in (
+        (["knn"], "KEY=VALUE"),
+        (["no_such=1"], "no VCDGS option 'no_such'"),
+        (["knn=four"], "not a valid int"),
+        (["hidden_pick=maybe"], "not a valid bool"),
+    ):
         with pytest.raises(UserError, match=says):
             parse_options(bad)
     with pytest.raises(UserError, match="knn"):  # parsed, then rejected by the config's own check
         preset("quick", **parse_options(["knn=0"]))
-    r = subprocess.run([sys.executable, "-m", "t2bs.cli", "reconstruct", "nowhere", "--set", "knn=four"],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "t2bs.cli", "reconstruct", "nowhere", "--set", "knn=four"],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and r.stderr.strip() == "error: VCDGS option knn='four': not a valid int", r.stderr

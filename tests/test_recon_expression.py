@@ -26,8 +26,9 @@ def lid_reconstruction():
 
 
 # The photometric loss alone (no optical-flow tracks), at the scene's 64 px, exact per seed (no time cap).
-LID_SETTINGS = dict(resolution=64, track_weight=0.0, iterations=400, global_iters=80, time_budget_s=0.0,
-                    hidden_pick=False)
+LID_SETTINGS = dict(
+    resolution=64, track_weight=0.0, iterations=400, global_iters=80, time_budget_s=0.0, hidden_pick=False
+)
 
 
 def test_lid_scene_moves_only_the_lid():
@@ -51,11 +52,13 @@ def test_photometric_loss_alone_moves_the_lid_the_right_way(lid_reconstruction):
     lid = mesh.part_mask("eyelid_left")
     true = grid.gt_vertices[:, lid] - mesh.vertices[lid]
     moved = res.vertices[:, lid] - mesh.vertices[lid]
-    assert float((true * moved).sum() / (true ** 2).sum()) >= 0.45  # least-squares gain of the lid's motion
+    assert float((true * moved).sum() / (true**2).sum()) >= 0.45  # least-squares gain of the lid's motion
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 37: the photometric loss alone recovers ~0.44 of the lid's motion, not 0.9")
+@pytest.mark.xfail(
+    strict=True, reason="issue 37: the photometric loss alone recovers ~0.44 of the lid's motion, not 0.9"
+)
 def test_photometric_loss_alone_recovers_the_lid(lid_reconstruction):
     mesh, grid, _, res = lid_reconstruction
     m = expression_metrics(res.vertices, grid.gt_vertices, mesh.vertices)
@@ -68,7 +71,7 @@ def test_expression_view_shows_input_gaussians_mesh_and_truth(lid_reconstruction
 
     from t2bs.geometry.io import save_mesh
     from t2bs.project import Project, mark_done
-    from t2bs.recon.commands import job_metrics
+    from t2bs.recon.stage import job_metrics
     from t2bs.recon.extract import write_outputs
     from t2bs.video.grid import save_grid
 
@@ -90,7 +93,7 @@ def test_expression_view_shows_input_gaussians_mesh_and_truth(lid_reconstruction
     assert info["expression"]["recovered"] == pytest.approx(m["recovered"], abs=1e-4)
     # Tiles: the input and the truth show the lid over the eye (fewer of the eye's dark pixels than at rest); the
     # trained Gaussians' and the mesh's tiles show the eye, somewhere between rest and the input.
-    dark = [(sheet[:96, 96 * k:96 * (k + 1)].mean(-1) < 60).sum() for k in range(4)]
+    dark = [(sheet[:96, 96 * k : 96 * (k + 1)].mean(-1) < 60).sum() for k in range(4)]
     rest = (np.asarray(Image.fromarray(grid.frames[grid.canonical_view, 0]).resize((96, 96))).mean(-1) < 60).sum()
     assert dark[0] < 0.7 * rest and dark[3] < 0.7 * rest, (dark, rest)
     assert 0 < dark[1] <= rest * 1.1 and 0 < dark[2] <= rest * 1.1, (dark, rest)

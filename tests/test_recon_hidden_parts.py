@@ -9,8 +9,16 @@ import torch
 from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
 from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
-from t2bs.recon.hidden_parts import (GROUPS, Opening, cluster_motions, compare_views, find_opening,
-                                     group_parts, hidden_parts, pick_hidden_motions)
+from t2bs.recon.hidden_parts import (
+    GROUPS,
+    Opening,
+    cluster_motions,
+    compare_views,
+    find_opening,
+    group_parts,
+    hidden_parts,
+    pick_hidden_motions,
+)
 from t2bs.recon.tracks import rest_visibility
 
 FRAMES = 5
@@ -32,10 +40,12 @@ def scene():
     (a 0.005 gap apart, so they are separate parts) that drops, a red part behind the jaw plate that stays with the head (seen once the jaw drops) and a green
     one behind the head plate that never shows. The reconstruction got both hidden parts wrong: the red one
     follows the jaw, the green one sinks (still out of sight)."""
-    parts = [("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
-             ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
-             ("red", quad(-0.1, 0.1, -0.09, -0.04, 0.0, (0.9, 0.1, 0.1), n=4)),
-             ("green", quad(-0.1, 0.1, 0.12, 0.2, 0.0, (0.1, 0.8, 0.1), n=4))]
+    parts = [
+        ("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
+        ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
+        ("red", quad(-0.1, 0.1, -0.09, -0.04, 0.0, (0.9, 0.1, 0.1), n=4)),
+        ("green", quad(-0.1, 0.1, 0.12, 0.2, 0.0, (0.1, 0.8, 0.1), n=4)),
+    ]
     mesh = merge_meshes(parts)
     sizes = np.cumsum([0] + [p.num_vertices for _, p in parts])
     idx = {name: np.arange(sizes[i], sizes[i + 1]) for i, (name, _) in enumerate(parts)}
@@ -52,7 +62,9 @@ def scene_images(renderer) -> tuple[list, np.ndarray]:
     """5 cameras over +-30 deg at 64 px and the true frames seen by each: (cameras, images [V, T, H, W, 3])."""
     mesh, true, _, _ = scene()
     cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
-    return cameras, np.stack([[renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+    return cameras, np.stack(
+        [[renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras]
+    )
 
 
 def test_components_and_hidden_parts():
@@ -102,6 +114,7 @@ def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
     def slit(x0: float, count: int) -> np.ndarray:  # two rows of points 0.004 apart, one above the other
         x = x0 + 0.01 * np.arange(count)
         return np.concatenate([np.stack([x, np.full(count, y), np.zeros(count)], 1) for y in (0.002, -0.002)])
+
     mouth, eye = slit(0.0, 12), slit(10.0, 3)
     rest = np.concatenate([mouth, eye]).astype(np.float32)
     moved = rest.copy()
@@ -115,8 +128,12 @@ def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
 def test_parts_group_by_where_they_lie_across_the_opening():
     opening = Opening(np.zeros(3), np.array([0.0, 1.0, 0.0]), pairs=1, frame=1)
     y = np.linspace(0.0, 1.0, 11)
-    rest = np.concatenate([np.stack([np.zeros_like(v), v, np.zeros_like(v)], 1)
-                           for v in (0.1 + y, -0.1 - y, 2 * y - 1.0, 1.2 * y - 0.3, 0.2 + y)])
+    rest = np.concatenate(
+        [
+            np.stack([np.zeros_like(v), v, np.zeros_like(v)], 1)
+            for v in (0.1 + y, -0.1 - y, 2 * y - 1.0, 1.2 * y - 0.3, 0.2 + y)
+        ]
+    )
     parts = [np.arange(11 * k, 11 * k + 11) for k in range(5)]
     groups = group_parts(rest, parts, opening)
     # wholly on the normal's side (0 and 4), wholly on the other (1), across evenly (2), across mostly on one side (3)
@@ -131,8 +148,19 @@ def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
     assert seen[idx["head"]].all() and not seen[idx["red"]].any() and not seen[idx["green"]].any()
     views = compare_views(cameras, 2, list(range(5)), count=3, min_separation_deg=10.0)
     assert views[0] == 2 and len(views) == 3
-    out, report = pick_hidden_motions(mesh, recon, seen, images, cameras, views, list(range(1, FRAMES)),
-                                      shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    out, report = pick_hidden_motions(
+        mesh,
+        recon,
+        seen,
+        images,
+        cameras,
+        views,
+        list(range(1, FRAMES)),
+        shading="unlit",
+        clusters=2,
+        min_vertices=4,
+        renderer=mesh_renderer,
+    )
     assert [len(p) for p in report.parts] == [16, 16] and len(report.groups) == 2  # one part on each side
     red = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["red"])][0]
     assert report.observable[red]
@@ -150,15 +178,28 @@ def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_ope
     cameras, images = scene_images(mesh_renderer)
     seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
     # Two hidden parts on the jaw's side: the red one and a copy of it further back, both wrong in the same way.
-    back = Mesh(mesh.vertices[idx["red"]] - np.array([0.0, 0.0, 0.05], np.float32),
-                mesh.faces[np.isin(mesh.faces, idx["red"]).all(1)] - idx["red"][0],
-                vertex_colors=mesh.vertex_colors[idx["red"]])
+    back = Mesh(
+        mesh.vertices[idx["red"]] - np.array([0.0, 0.0, 0.05], np.float32),
+        mesh.faces[np.isin(mesh.faces, idx["red"]).all(1)] - idx["red"][0],
+        vertex_colors=mesh.vertex_colors[idx["red"]],
+    )
     both = merge_meshes([("scene", mesh), ("back", back)])
     extra = np.arange(mesh.num_vertices, both.num_vertices)
     recon2 = np.concatenate([recon, recon[:, idx["red"]] - np.array([0.0, 0.0, 0.05], np.float32)], 1)
     seen2 = np.concatenate([seen, np.zeros(len(extra), bool)])
-    out, report = pick_hidden_motions(both, recon2, seen2, images, cameras, [2, 1, 3], list(range(1, FRAMES)),
-                                      shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    out, report = pick_hidden_motions(
+        both,
+        recon2,
+        seen2,
+        images,
+        cameras,
+        [2, 1, 3],
+        list(range(1, FRAMES)),
+        shading="unlit",
+        clusters=2,
+        min_vertices=4,
+        renderer=mesh_renderer,
+    )
     assert len(report.parts) == 3 and sorted(map(len, report.groups)) == [1, 2]
     red = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["red"])][0]
     twin = [i for i, p in enumerate(report.parts) if np.array_equal(p, extra)][0]
@@ -166,8 +207,19 @@ def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_ope
     assert np.abs(out[:, extra] - (true[:, idx["red"]] - np.array([0.0, 0.0, 0.05]))).max() < 1e-5
     # A reconstruction where nothing opens: the parts stay out of sight, so nothing is rendered and nothing moves.
     still = np.repeat(mesh.vertices[None], FRAMES, 0)
-    out, report = pick_hidden_motions(mesh, still, seen, images, cameras, [2], [1], shading="unlit", clusters=2,
-                                      min_vertices=4, renderer=mesh_renderer)
+    out, report = pick_hidden_motions(
+        mesh,
+        still,
+        seen,
+        images,
+        cameras,
+        [2],
+        [1],
+        shading="unlit",
+        clusters=2,
+        min_vertices=4,
+        renderer=mesh_renderer,
+    )
     assert report.opening is None and report.picks == [-1, -1] and report.groups == [] and report.loss_before == 0.0
     assert np.array_equal(out, still)
 
@@ -177,7 +229,9 @@ def test_robust_rigid_motion_ignores_the_points_that_deform():
     one plain least-squares fit (iterations=1) is pulled away by the deforming points."""
     rng = np.random.default_rng(0)
     rest = rng.normal(size=(200, 3))
-    rot = roma.rotvec_to_rotmat(torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.2, -0.1], [0.0, -0.3, 0.2]], dtype=torch.float64))
+    rot = roma.rotvec_to_rotmat(
+        torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.2, -0.1], [0.0, -0.3, 0.2]], dtype=torch.float64)
+    )
     trans = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.2, -0.1]])
     moved = apply_motion(rot.numpy(), trans, rest)
     moved[1:, :40] += rng.normal(size=(2, 40, 3)) * 0.3
@@ -202,8 +256,9 @@ def test_closed_rigid_gives_hidden_parts_the_head_motion_where_nothing_opens(mes
     args = (mesh, recon, seen, images, cameras, [2], [1])
     kept, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
     assert report.opening is None and not report.closed_rigid and np.array_equal(kept, recon)
-    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer,
-                                      closed_rigid=True)
+    out, report = pick_hidden_motions(
+        *args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, closed_rigid=True
+    )
     assert report.opening is None and report.closed_rigid and report.summary()["moved"] == 2
     hidden = np.concatenate([idx["red"], idx["green"]])
     assert np.abs(out[:, hidden] - true[:, hidden]).max() < 1e-5
@@ -212,7 +267,7 @@ def test_closed_rigid_gives_hidden_parts_the_head_motion_where_nothing_opens(mes
 
 
 def test_reconstruction_picks_on_its_training_views(mesh_renderer):
-    """The wiring in vcdgs (config.hidden_pick): seen vertices, views and frames from the training data."""
+    """The wiring in vcdgs (config.hidden_parts.hidden_pick): seen vertices, views and frames from the training data."""
     import torch
 
     from t2bs.recon.config import preset
@@ -221,8 +276,9 @@ def test_reconstruction_picks_on_its_training_views(mesh_renderer):
     mesh, true, recon, idx = scene()
     cameras, images = scene_images(mesh_renderer)
     data = TrainData(torch.as_tensor(images, dtype=torch.float32), None, cameras, 2, [0, 1, 2, 3], shading="unlit")
-    out, summary = _pick_hidden(mesh, recon, data, preset("quick", hidden_pick=True, hidden_pick_clusters=2,
-                                                           hidden_pick_min_vertices=4))
+    out, summary = _pick_hidden(
+        mesh, recon, data, preset("quick", hidden_pick=True, hidden_pick_clusters=2, hidden_pick_min_vertices=4)
+    )
     assert summary["hidden_parts"] == 2 and summary["moved"] == 1 and summary["views"][0] == 2
     assert 4 not in summary["views"]  # a held-out view is never compared against
     assert np.abs(out[:, idx["red"]] - true[:, idx["red"]]).max() < 1e-5

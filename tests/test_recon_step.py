@@ -43,13 +43,24 @@ def test_quaternion_product_matrices_equal_roma():
 def _scene(**overrides):
     """A small trained-from-scratch setup on the lid scene: model, data, config, cameras, loss, rest pose."""
     mesh, grid = lid_scene(frames=4, size=32, views=3)
-    cfg = preset("quick", resolution=32, static_iters=5, num_control_points=40, hidden=32, depth=2, refine_hidden=16,
-                 time_budget_s=0.0, **overrides)
+    cfg = preset(
+        "quick",
+        resolution=32,
+        static_iters=5,
+        num_control_points=40,
+        hidden=32,
+        depth=2,
+        refine_hidden=16,
+        time_budget_s=0.0,
+        **overrides,
+    )
     data = prepare_data(grid, cfg)
     v, t, n = data.views, data.frames, mesh.num_vertices
     # Synthetic tracks with every weight 1: the track term's normaliser is then the same for every pair.
     g = torch.Generator().manual_seed(3)
-    data.tracks = VertexTracks(torch.randn(v, t, n, 2, generator=g), torch.ones(v, t, n), torch.ones(v, n, dtype=torch.bool))
+    data.tracks = VertexTracks(
+        torch.randn(v, t, n, 2, generator=g), torch.ones(v, t, n), torch.ones(v, n, dtype=torch.bool)
+    )
     torch.manual_seed(0)
     model, _ = build_model(mesh, data, cfg)
     # Non-zero deformation networks (their last layers start at zero): every term and gradient is then non-trivial.
@@ -57,7 +68,15 @@ def _scene(**overrides):
         for p in model.parameters():
             p.add_(0.05 * torch.randn(p.shape, generator=g))
     vm, ks = camera_tensors(data.cameras)
-    return model, data, cfg, vm, ks, PerceptualLoss(cfg.perceptual, cfg.lpips_weights), _rest_as_seen(model, data.views)
+    return (
+        model,
+        data,
+        cfg,
+        vm,
+        ks,
+        PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights),
+        _rest_as_seen(model, data.views),
+    )
 
 
 def _loss_and_grads(model, fn):
@@ -73,11 +92,21 @@ def test_batched_step_equals_the_mean_of_per_pair_steps():
     model, data, cfg, vm, ks, perc, rest = _scene()
     v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
     for joint in (False, True):
-        batched, g_b = _loss_and_grads(model, lambda: sum(step_terms(model, data, cfg, v_idx, t_idx, vm, ks, perc, joint,
-                                                                    rest_seen=rest).values()))
-        per_pair, g_p = _loss_and_grads(model, lambda: sum(
-            sum(step_terms(model, data, cfg, v_idx[i:i + 1], t_idx[i:i + 1], vm, ks, perc, joint, rest_seen=rest).values())
-            for i in range(len(v_idx))) / len(v_idx))
+        batched, g_b = _loss_and_grads(
+            model, lambda: sum(step_terms(model, data, cfg, v_idx, t_idx, vm, ks, perc, joint, rest_seen=rest).values())
+        )
+        per_pair, g_p = _loss_and_grads(
+            model,
+            lambda: sum(
+                sum(
+                    step_terms(
+                        model, data, cfg, v_idx[i : i + 1], t_idx[i : i + 1], vm, ks, perc, joint, rest_seen=rest
+                    ).values()
+                )
+                for i in range(len(v_idx))
+            )
+            / len(v_idx),
+        )
         assert float(batched) > 0
         assert torch.allclose(batched, per_pair, rtol=1e-5), (joint, float(batched), float(per_pair))
         assert g_b.keys() == g_p.keys() and len(g_b) >= (2 if not joint else 6)
@@ -89,7 +118,7 @@ def test_batched_step_equals_the_mean_of_per_pair_steps():
 
 @pytest.mark.slow
 def test_compiled_step_equals_the_eager_step():
-    """config.compile: the same loss terms and gradients as the eager step (torch.compile, rasterizer excluded)."""
+    """config.runtime.compile: the same loss terms and gradients as the eager step (torch.compile, rasterizer excluded)."""
     model, data, cfg, vm, ks, perc, rest = _scene()
     v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
     compiled = torch.compile(step_terms, dynamic=False)

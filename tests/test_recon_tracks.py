@@ -39,13 +39,17 @@ def test_tracks_follow_a_known_motion_and_skip_hidden_vertices():
     grid, _ = splat_grid(mesh, frames, size=64, views=3)
     images = torch.stack([resize_stack(grid.frames[v], (64, 64)) for v in range(3)])
     tracks = compute_tracks(mesh, images, grid.cameras, [0, 1], fb_px=1.0, blur_px=0.5)  # every visible vertex
-    assert tracks.displacement.shape == (3, 3, mesh.num_vertices, 2) and tracks.weights.shape == (3, 3, mesh.num_vertices)
+    assert tracks.displacement.shape == (3, 3, mesh.num_vertices, 2) and tracks.weights.shape == (
+        3,
+        3,
+        mesh.num_vertices,
+    )
     assert float(tracks.weights[2].abs().max()) == 0.0  # view 2 was not asked for
     assert float(tracks.displacement[:, 0].abs().max()) == 0.0  # frame 0 is the rest pose
     true = _true_motion(grid, frames)
     for v in (0, 1):
         cam = grid.cameras[v]
-        facing = ((mesh.vertex_normals() * (cam.position - mesh.vertices)).sum(-1) < 0)  # back of the sphere
+        facing = (mesh.vertex_normals() * (cam.position - mesh.vertices)).sum(-1) < 0  # back of the sphere
         assert float(tracks.weights[v, :, facing].max()) == 0.0  # never visible: never tracked
         for t in (1, 2):
             ok = tracks.weights[v, t].numpy() > 0
@@ -139,4 +143,6 @@ def test_track_loss_is_zero_at_the_true_motion_and_grows_away_from_it():
     flat = VertexTracks(true, w, textured)
     assert float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=0.0)) < 1e-6
     full = float(track_loss(wrong, x0, vm, ks, tracks, v_idx, t_idx))
-    assert full > 0.1 and float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=1.0)) == pytest.approx(full)
+    assert full > 0.1 and float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=1.0)) == pytest.approx(
+        full
+    )

@@ -250,7 +250,9 @@ def test_cli_end_to_end_and_bad_driver(tmp_path, turtle):
     assert "no face in 1 of 24 frames" in res.output
     rows = (tmp_path / "out" / "weights.csv").read_text().splitlines()
     assert len(rows) == 25
-    assert (tmp_path / "out" / "animation.glb").stat().st_size > 0 and (tmp_path / "out" / "preview.mp4").stat().st_size > 0
+    assert (tmp_path / "out" / "animation.glb").stat().st_size > 0 and (
+        tmp_path / "out" / "preview.mp4"
+    ).stat().st_size > 0
     bad = tmp_path / "bad.mp4"
     bad.write_bytes(b"\x00" * 1000)
     res = runner.invoke(app, ["retarget", str(proj), "--driver", str(bad)])

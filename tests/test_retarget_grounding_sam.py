@@ -22,9 +22,20 @@ VOCAB = ["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", "eye", "mouth", "lef
 
 def _build_tiny_checkpoints(root):
     """Write a tiny Grounding-DINO folder and a tiny SAM folder (config, weights, processor files)."""
-    from transformers import (BertConfig, BertTokenizer, GroundingDinoConfig, GroundingDinoForObjectDetection,
-                              GroundingDinoProcessor, SamConfig, SamMaskDecoderConfig, SamModel, SamProcessor,
-                              SamPromptEncoderConfig, SamVisionConfig, SwinConfig)
+    from transformers import (
+        BertConfig,
+        BertTokenizer,
+        GroundingDinoConfig,
+        GroundingDinoForObjectDetection,
+        GroundingDinoProcessor,
+        SamConfig,
+        SamMaskDecoderConfig,
+        SamModel,
+        SamProcessor,
+        SamPromptEncoderConfig,
+        SamVisionConfig,
+        SwinConfig,
+    )
     from transformers.models.grounding_dino.image_processing_pil_grounding_dino import GroundingDinoImageProcessorPil
     from transformers.models.sam.image_processing_pil_sam import SamImageProcessorPil
 
@@ -36,31 +47,71 @@ def _build_tiny_checkpoints(root):
 
     # Swin backbone: 128 px input, 4 px patches, three output stages (strides 8, 16, 32) + one extra
     # level; the deepest map is 2x2, the smallest the detector's GroupNorm accepts.
-    swin = SwinConfig(image_size=128, patch_size=4, embed_dim=8, depths=[1, 1, 1, 1], num_heads=[1, 1, 1, 1],
-                      window_size=2, out_features=["stage2", "stage3", "stage4"])
-    bert = BertConfig(vocab_size=len(VOCAB), hidden_size=32, num_hidden_layers=1, num_attention_heads=2,
-                      intermediate_size=32, max_position_embeddings=64)
+    swin = SwinConfig(
+        image_size=128,
+        patch_size=4,
+        embed_dim=8,
+        depths=[1, 1, 1, 1],
+        num_heads=[1, 1, 1, 1],
+        window_size=2,
+        out_features=["stage2", "stage3", "stage4"],
+    )
+    bert = BertConfig(
+        vocab_size=len(VOCAB),
+        hidden_size=32,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        intermediate_size=32,
+        max_position_embeddings=64,
+    )
     # d_model must be a multiple of 32 (GroupNorm(32, d_model)); two decoder layers because the box
     # heads of layers > 0 are tied to layer 0's.
-    dino_cfg = GroundingDinoConfig(backbone_config=swin, text_config=bert, d_model=32, num_queries=10,
-                                   encoder_layers=1, decoder_layers=2, encoder_ffn_dim=32, decoder_ffn_dim=32,
-                                   encoder_attention_heads=2, decoder_attention_heads=2, max_text_len=32,
-                                   disable_custom_kernels=True)
+    dino_cfg = GroundingDinoConfig(
+        backbone_config=swin,
+        text_config=bert,
+        d_model=32,
+        num_queries=10,
+        encoder_layers=1,
+        decoder_layers=2,
+        encoder_ffn_dim=32,
+        decoder_ffn_dim=32,
+        encoder_attention_heads=2,
+        decoder_attention_heads=2,
+        max_text_len=32,
+        disable_custom_kernels=True,
+    )
     dino_dir = root / "grounding-dino"
     GroundingDinoForObjectDetection(dino_cfg).save_pretrained(dino_dir)
-    GroundingDinoProcessor(image_processor=GroundingDinoImageProcessorPil(size={"shortest_edge": 128, "longest_edge": 128}),
-                           tokenizer=tokenizer).save_pretrained(dino_dir)
+    GroundingDinoProcessor(
+        image_processor=GroundingDinoImageProcessorPil(size={"shortest_edge": 128, "longest_edge": 128}),
+        tokenizer=tokenizer,
+    ).save_pretrained(dino_dir)
 
     sam_cfg = SamConfig(
-        vision_config=SamVisionConfig(hidden_size=16, output_channels=8, num_hidden_layers=1, num_attention_heads=2,
-                                      image_size=64, patch_size=16, window_size=2, global_attn_indexes=[0],
-                                      num_pos_feats=4, mlp_dim=32),
-        prompt_encoder_config=SamPromptEncoderConfig(hidden_size=8, image_size=64, patch_size=16, mask_input_channels=4),
-        mask_decoder_config=SamMaskDecoderConfig(hidden_size=8, mlp_dim=16, num_attention_heads=2, iou_head_hidden_dim=8))
+        vision_config=SamVisionConfig(
+            hidden_size=16,
+            output_channels=8,
+            num_hidden_layers=1,
+            num_attention_heads=2,
+            image_size=64,
+            patch_size=16,
+            window_size=2,
+            global_attn_indexes=[0],
+            num_pos_feats=4,
+            mlp_dim=32,
+        ),
+        prompt_encoder_config=SamPromptEncoderConfig(
+            hidden_size=8, image_size=64, patch_size=16, mask_input_channels=4
+        ),
+        mask_decoder_config=SamMaskDecoderConfig(
+            hidden_size=8, mlp_dim=16, num_attention_heads=2, iou_head_hidden_dim=8
+        ),
+    )
     sam_dir = root / "sam"
     SamModel(sam_cfg).save_pretrained(sam_dir)
-    SamProcessor(image_processor=SamImageProcessorPil(size={"longest_edge": 64}, pad_size={"height": 64, "width": 64})
-                 ).save_pretrained(sam_dir)
+    SamProcessor(
+        image_processor=SamImageProcessorPil(size={"longest_edge": 64}, pad_size={"height": 64, "width": 64})
+    ).save_pretrained(sam_dir)
     return dino_dir, sam_dir
 
 

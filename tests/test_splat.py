@@ -40,8 +40,10 @@ def _render_with_grads(params, vm, K, w, h, backend, background):
     ps = [p.clone().requires_grad_() for p in params]
     out = rasterize_gaussians(*ps, vm, K, w, h, background=background, backend=backend)
     g = torch.Generator().manual_seed(7)
-    loss = sum((out[k] * torch.rand(out[k].shape, generator=g, dtype=out[k].dtype).to(out[k].device)).sum()
-               for k in ("rgb", "alpha", "depth"))
+    loss = sum(
+        (out[k] * torch.rand(out[k].shape, generator=g, dtype=out[k].dtype).to(out[k].device)).sum()
+        for k in ("rgb", "alpha", "depth")
+    )
     loss.backward()
     return {k: v.detach() for k, v in out.items()}, [p.grad for p in ps]
 
@@ -132,8 +134,13 @@ def test_no_per_tile_cap(kernel):
     g = torch.Generator().manual_seed(3)
     n = 3000
     means = torch.randn(n, 3, generator=g) * 0.01
-    params = [means, torch.randn(n, 4, generator=g), torch.full((n, 3), 0.05), torch.full((n,), 0.005),
-              torch.rand(n, 3, generator=g)]
+    params = [
+        means,
+        torch.randn(n, 4, generator=g),
+        torch.full((n, 3), 0.05),
+        torch.full((n,), 0.005),
+        torch.rand(n, 3, generator=g),
+    ]
     ref, ref_g = _render_with_grads(params, vm, K, 16, 16, "reference", None)
     fast, fast_g = _render_with_grads(params, vm, K, 16, 16, "cpu", None)
     assert ref["alpha"].max() > 0.9  # -ln(0.1) / 0.005: needs > 460 composited layers at the centre
@@ -155,8 +162,9 @@ def test_reference_finite_differences():
     weights = torch.rand(1, 16, 16, 5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 
     def f(m, q, s, o, c):
-        out = rasterize_gaussians(m, q, s, o, c, vm, K, 16, 16, background=torch.ones(3, dtype=torch.float64),
-                                  backend="reference")
+        out = rasterize_gaussians(
+            m, q, s, o, c, vm, K, 16, 16, background=torch.ones(3, dtype=torch.float64), backend="reference"
+        )
         return (torch.cat([out["rgb"], out["alpha"], out["depth"]], -1) * weights).sum()
 
     inputs = [x.clone().requires_grad_() for x in (means, quats, scales, opac, colors)]
@@ -170,8 +178,18 @@ def test_single_gaussian_analytic(kernel):
     z = float(cam.world_to_camera[2, 3])  # camera at distance z looking at the origin
     f = float(cam.K[0, 0])
     s, o = 0.02, 0.8
-    out = rasterize_gaussians(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), s),
-                              torch.tensor([o]), torch.tensor([[0.2, 0.4, 0.6]]), vm, K, 40, 40, backend="cpu")
+    out = rasterize_gaussians(
+        torch.zeros(1, 3),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.full((1, 3), s),
+        torch.tensor([o]),
+        torch.tensor([[0.2, 0.4, 0.6]]),
+        vm,
+        K,
+        40,
+        40,
+        backend="cpu",
+    )
     var = (f * s / z) ** 2 + 0.3
     ys, xs = np.mgrid[0:40, 0:40] + 0.5
     d2 = ((xs - 20.0) ** 2 + (ys - 20.0) ** 2) / var
@@ -195,7 +213,9 @@ def test_occlusion_order_independent_of_input_order(kernel):
     colors = torch.tensor([[1.0, 0, 0], [0, 0, 1.0]])
     for backend in ("cpu", "reference"):
         a = rasterize_gaussians(means, quats, scales, opac, colors, vm, K, 32, 32, backend=backend)
-        b = rasterize_gaussians(means.flip(0), quats, scales, opac.flip(0), colors.flip(0), vm, K, 32, 32, backend=backend)
+        b = rasterize_gaussians(
+            means.flip(0), quats, scales, opac.flip(0), colors.flip(0), vm, K, 32, 32, backend=backend
+        )
         torch.testing.assert_close(a["rgb"], b["rgb"])
         centre = a["rgb"][0, 16, 16]
         assert centre[0] > 0.9 and centre[2] < 0.07  # red in front occludes blue
@@ -260,8 +280,18 @@ def test_gaussian_cloud_matches_mesh_silhouette(kernel):
     quats = torch.tensor(_quat_z_to(tm.face_normals[face_ids]), dtype=torch.float32)
     scales = torch.tensor([[0.012, 0.012, 1e-4]]).expand(n, 3)
     vm, K = _cams(cams)
-    out = rasterize_gaussians(torch.tensor(points, dtype=torch.float32), quats, scales, torch.full((n,), 0.9),
-                              torch.ones(n, 3), vm, K, size, size, backend="cpu")
+    out = rasterize_gaussians(
+        torch.tensor(points, dtype=torch.float32),
+        quats,
+        scales,
+        torch.full((n,), 0.9),
+        torch.ones(n, 3),
+        vm,
+        K,
+        size,
+        size,
+        backend="cpu",
+    )
     for c, mask in enumerate(masks):
         sil = out["alpha"][c, ..., 0].numpy() > 0.5
         iou = (sil & mask).sum() / (sil | mask).sum()
@@ -319,7 +349,7 @@ def test_gsplat_matches_cpu(kernel, per_camera):
 
 
 def test_bench_rejects_unknown_case():
-    from t2bs.eval.bench_raster import bench_raster_command
+    from t2bs.cli.bench import bench_raster_command
 
     with pytest.raises(UserError, match="unknown case"):
         bench_raster_command(cases="a,z")

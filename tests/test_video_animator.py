@@ -8,25 +8,38 @@ import pytest
 from conftest import asset
 from t2bs.errors import UserError
 from t2bs.video.animator import AnimationConfig, animate, apply_head_motion, morph_drivers, resolve_expression
-from t2bs.video.prompts import (EMOTIONAL_EXPRESSIONS, EXPRESSIONS, PHYSICAL_EXPRESSIONS, load_prompt_list, make_jobs,
-                                resolve_expressions, video_prompt, write_default_prompt_list)
+from t2bs.video.prompts import (
+    EMOTIONAL_EXPRESSIONS,
+    EXPRESSIONS,
+    PHYSICAL_EXPRESSIONS,
+    load_prompt_list,
+    make_jobs,
+    resolve_expressions,
+    video_prompt,
+    write_default_prompt_list,
+)
 
 
 @pytest.fixture(scope="module")
 def characters():
-    from t2bs.commands_render import canonical_character
+    from t2bs.character.render_stage import canonical_character
 
     return {n: canonical_character(asset(f"{n}.glb"))[0] for n in ("turtle", "facecap", "vipe_hero_head")}
 
 
 def test_paper_prompts():
     assert len(PHYSICAL_EXPRESSIONS) == 13 and len(EMOTIONAL_EXPRESSIONS) == 7 and len(set(EXPRESSIONS)) == 20
-    assert video_prompt("a cartoon turtle", "blinking") == \
-        "a cartoon turtle, blinking, static camera, the camera is holding still"
+    assert (
+        video_prompt("a cartoon turtle", "blinking")
+        == "a cartoon turtle, blinking, static camera, the camera is holding still"
+    )
     jobs = make_jobs("a fox", ["blinking", "opening the mouth extremely wide"], samples=3)
     assert len(jobs) == 6 and jobs[5].video_id == "opening-the-mouth-extremely-wide-s2"
     assert resolve_expressions("all") == list(EXPRESSIONS)
-    assert resolve_expressions("Blinking, tongue-sticking-out-the-mouth") == ["blinking", "tongue sticking out the mouth"]
+    assert resolve_expressions("Blinking, tongue-sticking-out-the-mouth") == [
+        "blinking",
+        "tongue sticking out the mouth",
+    ]
     with pytest.raises(UserError, match="unknown expression 'dancing'; valid: talking, screaming"):
         resolve_expressions("blinking,dancing")
 

@@ -30,20 +30,44 @@ def test_letterbox_keeps_the_square_in_the_middle():
 def _tiny_checkpoint(folder):
     """Save a random-weight CogVideoX I2V pipeline (configs as in diffusers' own fast tests)."""
     import torch
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXImageToVideoPipeline, CogVideoXTransformer3DModel, DDIMScheduler
+    from diffusers import (
+        AutoencoderKLCogVideoX,
+        CogVideoXImageToVideoPipeline,
+        CogVideoXTransformer3DModel,
+        DDIMScheduler,
+    )
     from tokenizers import Tokenizer, models, pre_tokenizers
     from transformers import PreTrainedTokenizerFast, T5Config, T5EncoderModel
 
     torch.manual_seed(0)
     transformer = CogVideoXTransformer3DModel(
-        num_attention_heads=2, attention_head_dim=16, in_channels=8, out_channels=4, time_embed_dim=2,
-        text_embed_dim=32, num_layers=1, sample_width=2, sample_height=2, sample_frames=9, patch_size=2,
-        temporal_compression_ratio=4, max_text_seq_length=16, use_rotary_positional_embeddings=True,
-        use_learned_positional_embeddings=True)
+        num_attention_heads=2,
+        attention_head_dim=16,
+        in_channels=8,
+        out_channels=4,
+        time_embed_dim=2,
+        text_embed_dim=32,
+        num_layers=1,
+        sample_width=2,
+        sample_height=2,
+        sample_frames=9,
+        patch_size=2,
+        temporal_compression_ratio=4,
+        max_text_seq_length=16,
+        use_rotary_positional_embeddings=True,
+        use_learned_positional_embeddings=True,
+    )
     vae = AutoencoderKLCogVideoX(
-        in_channels=3, out_channels=3, down_block_types=("CogVideoXDownBlock3D",) * 4,
-        up_block_types=("CogVideoXUpBlock3D",) * 4, block_out_channels=(8, 8, 8, 8), latent_channels=4,
-        layers_per_block=1, norm_num_groups=2, temporal_compression_ratio=4)
+        in_channels=3,
+        out_channels=3,
+        down_block_types=("CogVideoXDownBlock3D",) * 4,
+        up_block_types=("CogVideoXUpBlock3D",) * 4,
+        block_out_channels=(8, 8, 8, 8),
+        latent_channels=4,
+        layers_per_block=1,
+        norm_num_groups=2,
+        temporal_compression_ratio=4,
+    )
     text_encoder = T5EncoderModel(T5Config(vocab_size=64, d_model=32, d_kv=8, d_ff=37, num_layers=2, num_heads=4))
     # A word-level tokenizer built here: the real T5 tokenizer would need a download.
     vocab = {"<pad>": 0, "</s>": 1, "<unk>": 2}
@@ -52,8 +76,9 @@ def _tiny_checkpoint(folder):
     tk = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
     tk.pre_tokenizer = pre_tokenizers.Whitespace()
     tokenizer = PreTrainedTokenizerFast(tokenizer_object=tk, pad_token="<pad>", eos_token="</s>", unk_token="<unk>")
-    pipe = CogVideoXImageToVideoPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae,
-                                         transformer=transformer, scheduler=DDIMScheduler())
+    pipe = CogVideoXImageToVideoPipeline(
+        tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=DDIMScheduler()
+    )
     pipe.save_pretrained(folder)
     return folder
 
@@ -68,8 +93,12 @@ def test_tiny_pipeline_makes_a_fixed_view_video(tmp_path):
     pipe = load_pipeline(ckpt, device="cpu")
     cfg = CogVideoXConfig(frames=9, steps=2, height=16, width=16, max_sequence_length=16)
     image = np.full((32, 32, 3), 180, np.uint8)
-    video = generate_fixed_view(pipe, image, "a turtle, blinking, static camera, the camera is holding still", cfg, seed=0)
-    again = generate_fixed_view(pipe, image, "a turtle, blinking, static camera, the camera is holding still", cfg, seed=0)
+    video = generate_fixed_view(
+        pipe, image, "a turtle, blinking, static camera, the camera is holding still", cfg, seed=0
+    )
+    again = generate_fixed_view(
+        pipe, image, "a turtle, blinking, static camera, the camera is holding still", cfg, seed=0
+    )
     assert video.shape == (9, 32, 32, 3) and video.dtype == np.uint8
     assert np.array_equal(video, again)  # seeded
     grid = fixed_view_grid(video, frontal_camera(512), cfg.fps, {"expression": "blinking"})

@@ -59,19 +59,28 @@ def test_optional_parts_and_mp4(tmp_path):
     assert np.abs(m.frames.astype(int) - smooth.frames).mean() < 6  # lossy but the same picture
 
 
-@pytest.mark.parametrize("break_it, message", [
-    (lambda d: (d / "frames" / "view01" / "0003.png").unlink(), "has 3 frames but grid.json says 4"),
-    (lambda d: (d / "cameras.json").unlink(), "cameras.json missing"),
-    (lambda d: (d / "grid.json").unlink(), "grid.json missing"),
-    (lambda d: shutil.rmtree(d / "frames" / "view04"), "frames/view04/ missing"),
-    (lambda d: _edit_json(d / "cameras.json", lambda c: c[:-1]), "4 cameras but grid.json says 5 views"),
-    (lambda d: _edit_json(d / "grid.json", lambda c: {**c, "times": c["times"][:-1]}), "3 time stamps for 4 frames"),
-    (lambda d: _edit_json(d / "grid.json", lambda c: {**c, "width": 40}), "is 32x32 but grid.json says 40x32"),
-    (lambda d: _edit_json(d / "grid.json", lambda c: {**c, "canonical_view": 9}), "canonical_view 9 is outside"),
-    (lambda d: np.save(d / "gt_vertices.npy", np.zeros((3, 50, 3), np.float32)), "gt_vertices must be [4, N, 3]"),
-    (lambda d: np.savez(d / "masks.npz", masks=np.zeros((5, 4, 16, 16), bool)), "masks must be bool [5, 4, 32, 32]"),
-    (lambda d: _png(d / "frames" / "view00" / "0001.png", 24), "view 0 frame 1 is 24x24"),
-])
+@pytest.mark.parametrize(
+    "break_it, message",
+    [
+        (lambda d: (d / "frames" / "view01" / "0003.png").unlink(), "has 3 frames but grid.json says 4"),
+        (lambda d: (d / "cameras.json").unlink(), "cameras.json missing"),
+        (lambda d: (d / "grid.json").unlink(), "grid.json missing"),
+        (lambda d: shutil.rmtree(d / "frames" / "view04"), "frames/view04/ missing"),
+        (lambda d: _edit_json(d / "cameras.json", lambda c: c[:-1]), "4 cameras but grid.json says 5 views"),
+        (
+            lambda d: _edit_json(d / "grid.json", lambda c: {**c, "times": c["times"][:-1]}),
+            "3 time stamps for 4 frames",
+        ),
+        (lambda d: _edit_json(d / "grid.json", lambda c: {**c, "width": 40}), "is 32x32 but grid.json says 40x32"),
+        (lambda d: _edit_json(d / "grid.json", lambda c: {**c, "canonical_view": 9}), "canonical_view 9 is outside"),
+        (lambda d: np.save(d / "gt_vertices.npy", np.zeros((3, 50, 3), np.float32)), "gt_vertices must be [4, N, 3]"),
+        (
+            lambda d: np.savez(d / "masks.npz", masks=np.zeros((5, 4, 16, 16), bool)),
+            "masks must be bool [5, 4, 32, 32]",
+        ),
+        (lambda d: _png(d / "frames" / "view00" / "0001.png", 24), "view 0 frame 1 is 24x24"),
+    ],
+)
 def test_malformed_folder_is_rejected(tmp_path, break_it, message):
     d = tmp_path / "g"
     save_grid(_grid(), d)

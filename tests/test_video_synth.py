@@ -16,7 +16,7 @@ CFG = GridConfig(frames=8, size=64, views=5)
 
 @pytest.fixture(scope="module")
 def turtle():
-    from t2bs.commands_render import canonical_character
+    from t2bs.character.render_stage import canonical_character
 
     return canonical_character(asset("turtle.glb"))[0]
 
@@ -47,8 +47,14 @@ def test_gt_vertices_reproduce_the_canonical_view(turtle, grids, mesh_renderer):
 
 def test_zero_strength_is_a_clean_render(turtle, grids, mesh_renderer):
     clean, _ = grids
-    zero = make_grid(turtle, "blinking", seed=0, config=CFG, renderer=mesh_renderer,
-                     defects=DefectConfig(geometry=0, color=0, lighting=0, texture_noise=0, blur=0, flicker=0, seed=7))
+    zero = make_grid(
+        turtle,
+        "blinking",
+        seed=0,
+        config=CFG,
+        renderer=mesh_renderer,
+        defects=DefectConfig(geometry=0, color=0, lighting=0, texture_noise=0, blur=0, flicker=0, seed=7),
+    )
     assert np.array_equal(zero.frames, clean.frames)
     for v in (0, 4):  # every view is the plain render of the true vertices
         rgb = mesh_renderer.render(turtle, clean.cameras[v], vertices=clean.gt_vertices[3], shading="unlit").rgb
@@ -78,7 +84,9 @@ def test_each_defect_alone_changes_side_views(turtle, grids, mesh_renderer):
     small = GridConfig(frames=3, size=48, views=3)
     base = make_grid(turtle, "smiling", seed=1, config=small, renderer=mesh_renderer)
     for name in ("geometry", "color", "lighting", "texture_noise", "blur", "flicker"):
-        g = make_grid(turtle, "smiling", seed=1, config=small, renderer=mesh_renderer, defects=DefectConfig(**{name: 1.0}))
+        g = make_grid(
+            turtle, "smiling", seed=1, config=small, renderer=mesh_renderer, defects=DefectConfig(**{name: 1.0})
+        )
         assert np.array_equal(g.frames[1], base.frames[1]), name
         assert not np.array_equal(g.frames[0], base.frames[0]), name
 
@@ -101,22 +109,40 @@ def test_bad_settings():
 def test_videos_command_resumes(tmp_path, turtle, capsys):
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.project import Project
-    from t2bs.video.commands import videos_command
+    from t2bs.video.stage import VideosConfig, run
     from t2bs.video.grid import load_grid
 
     project = Project(tmp_path / "p")
     save_mesh(turtle, project.mesh_path)
-    kw = dict(prompts="blinking,waving the ears", samples=1, defects="mild", frames=4, size=32, views=3, seed=0,
-              shading="unlit", backend="procedural", checkpoint=None, steps=1, import_grid=None, expression=None, sample=0)
-    videos_command(project.root, **kw)
+    kw = dict(
+        prompts="blinking,waving the ears",
+        samples=1,
+        defects="mild",
+        frames=4,
+        size=32,
+        views=3,
+        seed=0,
+        shading="unlit",
+        backend="procedural",
+        checkpoint=None,
+        steps=1,
+        import_grid=None,
+        expression=None,
+        sample=0,
+    )
+    run(project.root, VideosConfig(**kw))
     assert "2 made" in capsys.readouterr().out
     g = load_grid(project.path("videos", "waving-the-ears-s0"))
-    assert g.frames.shape == (3, 4, 32, 32, 3) and g.gt_vertices.shape == (4, load_mesh(project.mesh_path).num_vertices, 3)
+    assert g.frames.shape == (3, 4, 32, 32, 3) and g.gt_vertices.shape == (
+        4,
+        load_mesh(project.mesh_path).num_vertices,
+        3,
+    )
     assert g.meta["prompt"] == "a 3D character head, waving the ears, static camera, the camera is holding still"
     assert project.path("videos", "blinking-s0", "contact_sheet.png").exists()
-    videos_command(project.root, **kw)
+    run(project.root, VideosConfig(**kw))
     assert "0 made, 2 up to date" in capsys.readouterr().out
-    videos_command(project.root, **{**kw, "defects": "paper"})  # new settings: redone
+    run(project.root, VideosConfig(**{**kw, "defects": "paper"}))  # new settings: redone
     assert "2 made" in capsys.readouterr().out
     with pytest.raises(UserError, match="unknown expression 'dancing'"):
-        videos_command(project.root, **{**kw, "prompts": "dancing"})
+        run(project.root, VideosConfig(**{**kw, "prompts": "dancing"}))

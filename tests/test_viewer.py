@@ -29,11 +29,15 @@ from viewer_fixture import CAPTURE_ID, RETARGET_NAME, build_fixture_project  # n
 pytest.importorskip("viser", reason="viser not installed (pip install 't2bs[viewer]')")
 
 from t2bs.errors import UserError  # noqa: E402
-from t2bs.viewer.app import NONE, ViewerApp, load_retarget, mesh_glb  # noqa: E402
+from t2bs.geometry.io import glb_bytes  # noqa: E402
+from t2bs.geometry.mesh import Mesh  # noqa: E402
+from t2bs.viewer.app import NONE, ViewerApp, load_retarget  # noqa: E402
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver") or ("/usr/bin/chromedriver" if os.path.exists("/usr/bin/chromedriver") else None)
+CHROMEDRIVER = shutil.which("chromedriver") or (
+    "/usr/bin/chromedriver" if os.path.exists("/usr/bin/chromedriver") else None
+)
 
 
 @pytest.fixture(scope="module")
@@ -175,7 +179,7 @@ def test_glb_round_trip(project):
 
     _, info = project
     v, f = info["neutral"], info["faces"]
-    glb = mesh_glb(v, f, np.full((len(v), 3), 0.25, np.float32))
+    glb = glb_bytes(Mesh(v, f, vertex_colors=np.full((len(v), 3), 0.25, np.float32)), roughness=0.75)
     scene = trimesh.load(io.BytesIO(glb), file_type="glb", process=False)
     (m,) = scene.geometry.values()
     np.testing.assert_allclose(m.vertices, v, atol=1e-6)
@@ -187,8 +191,13 @@ def test_glb_round_trip(project):
 
 def _start_cli(root: Path, *args: str) -> tuple[subprocess.Popen, str]:
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-m", "t2bs.viewer", str(root), "--port", "0", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "t2bs.cli", "view", str(root), "--port", "0", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     deadline = time.monotonic() + 30
     lines = []
     while time.monotonic() < deadline:
@@ -236,7 +245,7 @@ def test_cli_stops_cleanly(project, sig):
 
 def test_host_warning():
     """--host beyond loopback prints a warning (checked without binding a public address)."""
-    from t2bs.viewer.commands import exposure_warning
+    from t2bs.viewer.serve import exposure_warning
 
     for host in ("127.0.0.1", "localhost", "::1", "127.0.0.2", "[::1]"):
         assert exposure_warning(host) is None, host
@@ -275,12 +284,23 @@ def _chrome(tmp_path: Path):
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
-    for a in ["--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
-              # WebGL without a GPU: ANGLE on SwiftShader (software Vulkan/GL).
-              "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-              "--window-size=1024,720", "--hide-scrollbars", "--force-device-scale-factor=1",
-              "--disable-background-networking", "--disable-component-update", "--disable-sync",
-              "--no-first-run", "--no-default-browser-check", f"--user-data-dir={tmp_path / 'chrome-profile'}"]:
+    for a in [
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        # WebGL without a GPU: ANGLE on SwiftShader (software Vulkan/GL).
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--window-size=1024,720",
+        "--hide-scrollbars",
+        "--force-device-scale-factor=1",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--no-first-run",
+        "--no-default-browser-check",
+        f"--user-data-dir={tmp_path / 'chrome-profile'}",
+    ]:
         opts.add_argument(a)
     return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
 
@@ -316,14 +336,14 @@ def _project(points: np.ndarray, width: int, height: int) -> np.ndarray:
 def _disc_mask(uv: np.ndarray, shape: tuple[int, int], radius: float) -> np.ndarray:
     h, w = shape
     mask = np.zeros((h, w), bool)
-    yy, xx = np.mgrid[-int(radius): int(radius) + 1, -int(radius): int(radius) + 1]
+    yy, xx = np.mgrid[-int(radius) : int(radius) + 1, -int(radius) : int(radius) + 1]
     disc = xx**2 + yy**2 <= radius**2
     for x, y in np.round(uv).astype(int):
         y0, y1, x0, x1 = y - int(radius), y + int(radius) + 1, x - int(radius), x + int(radius) + 1
         if y1 <= 0 or x1 <= 0 or y0 >= h or x0 >= w:
             continue
         sy, sx = slice(max(y0, 0), min(y1, h)), slice(max(x0, 0), min(x1, w))
-        mask[sy, sx] |= disc[sy.start - y0: sy.stop - y0, sx.start - x0: sx.stop - x0]
+        mask[sy, sx] |= disc[sy.start - y0 : sy.stop - y0, sx.start - x0 : sx.stop - x0]
     return mask
 
 
@@ -342,8 +362,10 @@ def _shape_regions(v0, basis, scale, width: int, height: int):
     return expected, other, silhouette
 
 
-@pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
-                    reason="needs Debian's chromium and chromium-driver (apt-get install chromium chromium-driver)")
+@pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="needs Debian's chromium and chromium-driver (apt-get install chromium chromium-driver)",
+)
 @pytest.mark.slow
 @pytest.mark.timeout(90)
 def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tmp_path):
@@ -359,7 +381,8 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
         try:
             driver.get(app.url)
             w, h = driver.execute_script(
-                "const r = document.querySelector('canvas').getBoundingClientRect(); return [r.width, r.height];")
+                "const r = document.querySelector('canvas').getBoundingClientRect(); return [r.width, r.height];"
+            )
             w, h = int(round(w)), int(round(h))
             centre = _project(np.zeros((1, 3)), w, h)[0]
             cx, cy = int(round(centre[0])), int(round(centre[1]))
@@ -381,8 +404,8 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
             n_after = int(((np.abs(after - before).max(-1) > 40) & expected).sum())
             app.show_capture(CAPTURE_ID, frame=3)
             capture = _wait_stable(
-                driver, lambda img: ((np.abs(img - back).max(-1) > 40) & expected).sum() > 0.5 * n_after,
-                timeout=15)
+                driver, lambda img: ((np.abs(img - back).max(-1) > 40) & expected).sum() > 0.5 * n_after, timeout=15
+            )
             n_images = driver.execute_script("return document.querySelectorAll('img').length;")
         finally:
             driver.quit()
@@ -400,8 +423,10 @@ def test_browser_slider_moves_the_character_where_the_shape_moves_it(project, tm
 
     n_diff = int(diff.sum())
     inside = float((diff & expected).sum()) / max(n_diff, 1)
-    print(f"first frame {t_first:.1f} s; changed px {n_diff}, inside the shape's region {inside:.3f}, "
-          f"in the other shape's region {int((diff & other).sum())}, silhouette px {int(silhouette.sum())}")
+    print(
+        f"first frame {t_first:.1f} s; changed px {n_diff}, inside the shape's region {inside:.3f}, "
+        f"in the other shape's region {int((diff & other).sum())}, silhouette px {int(silhouette.sum())}"
+    )
     assert n_diff > 500, "the character did not visibly change"
     assert inside > 0.95, "pixels changed outside the region the shape moves"
     assert (diff & other).sum() == 0, "the jaw region changed although only the bump slider moved"
@@ -441,12 +466,15 @@ def test_arkit_shapes_listed_first_and_grouped(project, tmp_path):
     write_json(copy / "blendshapes" / "arkit.json", ArkitShapes(["eyeBlinkLeft", "jawOpen"], w, {}).to_dict())
     (copy / "retarget" / "take").mkdir(parents=True)
     (copy / "retarget" / "take" / "weights.csv").write_text(
-        "frame,time,eyeBlinkLeft,jawOpen,headYaw,headPitch,headRoll\n0,0.0,0.0,0.0,0,0,0\n1,0.0167,1.0,0.5,0.1,0,0\n")
+        "frame,time,eyeBlinkLeft,jawOpen,headYaw,headPitch,headRoll\n0,0.0,0.0,0.0,0,0,0\n1,0.0167,1.0,0.5,0.1,0,0\n"
+    )
     with ViewerApp(copy, port=0) as app:
         assert app.shape_names == ["eyeBlinkLeft", "jawOpen", "jaw_open", "pc000", "pc001"]
         assert [s.group for s in app.shapes[:2]] == ["arkit/eyes", "arkit/jaw"]
         app.set_weights({"jawOpen": 1.0})
-        np.testing.assert_allclose(app.current_vertices(), info["neutral"] + info["scale"][1] * info["basis"][1], atol=1e-5)
+        np.testing.assert_allclose(
+            app.current_vertices(), info["neutral"] + info["scale"][1] * info["basis"][1], atol=1e-5
+        )
         ret = load_retarget(copy, "take", app.shapes)
         assert ret.ignored == ["headYaw", "headPitch", "headRoll"]
         np.testing.assert_allclose(ret.weights[1], [1.0, 0.5])

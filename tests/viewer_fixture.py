@@ -75,11 +75,21 @@ def build_fixture_project(root: Path, with_model: bool = True) -> dict:
     # Weight at which the peak vertex moves by PEAK.
     scale = np.array([PEAK / np.linalg.norm(basis[k], axis=1).max() for k in range(2)])
 
-    mesh = Mesh(vertices=v, faces=f, vertex_colors=colours(v),
-                morph_targets={"smile": (bump * PEAK).astype(np.float32), "jaw_open": (jaw * PEAK).astype(np.float32)})
+    mesh = Mesh(
+        vertices=v,
+        faces=f,
+        vertex_colors=colours(v),
+        morph_targets={"smile": (bump * PEAK).astype(np.float32), "jaw_open": (jaw * PEAK).astype(np.float32)},
+    )
     save_mesh(mesh, root / "character" / "mesh.glb")
-    info = {"neutral": v, "faces": f, "basis": basis, "scale": scale, "colors": mesh.vertex_colors,
-            "morph_targets": mesh.morph_targets}
+    info = {
+        "neutral": v,
+        "faces": f,
+        "basis": basis,
+        "scale": scale,
+        "colors": mesh.vertex_colors,
+        "morph_targets": mesh.morph_targets,
+    }
     if not with_model:
         return info
 
@@ -90,10 +100,16 @@ def build_fixture_project(root: Path, with_model: bool = True) -> dict:
     cap_w[:, 0] = np.linspace(0, 1, t) * scale[0]  # the bump grows over the capture
     recon = (v[None].astype(np.float64) + np.einsum("tk,knc->tnc", cap_w, basis)).astype(np.float32)  # [T, N, 3]
     model = BlendshapeModel(
-        neutral=v, basis=basis, singular_values=np.array([2.0, 1.0]), names=["pc000", "pc001"],
-        explained_variance=np.array([0.8, 0.2]), capture_weights={CAPTURE_ID: cap_w},
-        semantic_names=["jaw_open"], semantic_weights=np.array([[0.0, scale[1]]], np.float32),
-        semantic_sources=[f"{CAPTURE_ID}:3"], meta={"source": "viewer test fixture"},
+        neutral=v,
+        basis=basis,
+        singular_values=np.array([2.0, 1.0]),
+        names=["pc000", "pc001"],
+        explained_variance=np.array([0.8, 0.2]),
+        capture_weights={CAPTURE_ID: cap_w},
+        semantic_names=["jaw_open"],
+        semantic_weights=np.array([[0.0, scale[1]]], np.float32),
+        semantic_sources=[f"{CAPTURE_ID}:3"],
+        meta={"source": "viewer test fixture"},
     )
     save_model(model, root / "blendshapes" / "model.npz")
 
@@ -126,7 +142,14 @@ def _save_grid(folder: Path, frames: np.ndarray, cameras) -> None:
     from t2bs.video.grid import VideoGrid, save_grid
 
     nv, nt = frames.shape[:2]
-    grid = VideoGrid(frames=frames, cameras=cameras, times=(np.arange(nt) / 8.0).astype(np.float32),
-                     canonical_view=nv // 2, masks=None, gt_vertices=None, backend="test-fixture",
-                     meta={"fps": 8.0, "expression": "bump"})
+    grid = VideoGrid(
+        frames=frames,
+        cameras=cameras,
+        times=(np.arange(nt) / 8.0).astype(np.float32),
+        canonical_view=nv // 2,
+        masks=None,
+        gt_vertices=None,
+        backend="test-fixture",
+        meta={"fps": 8.0, "expression": "bump"},
+    )
     save_grid(grid, folder)

@@ -25,10 +25,76 @@ from pathlib import Path
 import numpy as np
 
 # ICT README "Facial Landmarks": Multi-PIE 68-point landmark vertex ids (0-based).
-ICT_68 = [1225, 1888, 1052, 367, 1719, 1722, 2199, 1447, 966, 3661, 4390, 3927, 3924, 2608, 3272, 4088, 3443, 268, 493,
-          1914, 2044, 1401, 3615, 4240, 4114, 2734, 2509, 978, 4527, 4942, 4857, 1140, 2075, 1147, 4269, 3360, 1507, 1542,
-          1537, 1528, 1518, 1511, 3742, 3751, 3756, 3721, 3725, 3732, 5708, 5695, 2081, 0, 4275, 6200, 6213, 6346, 6461,
-          5518, 5957, 5841, 5702, 5711, 5533, 6216, 6207, 6470, 5517, 5966]
+ICT_68 = [
+    1225,
+    1888,
+    1052,
+    367,
+    1719,
+    1722,
+    2199,
+    1447,
+    966,
+    3661,
+    4390,
+    3927,
+    3924,
+    2608,
+    3272,
+    4088,
+    3443,
+    268,
+    493,
+    1914,
+    2044,
+    1401,
+    3615,
+    4240,
+    4114,
+    2734,
+    2509,
+    978,
+    4527,
+    4942,
+    4857,
+    1140,
+    2075,
+    1147,
+    4269,
+    3360,
+    1507,
+    1542,
+    1537,
+    1528,
+    1518,
+    1511,
+    3742,
+    3751,
+    3756,
+    3721,
+    3725,
+    3732,
+    5708,
+    5695,
+    2081,
+    0,
+    4275,
+    6200,
+    6213,
+    6346,
+    6461,
+    5518,
+    5957,
+    5841,
+    5702,
+    5711,
+    5533,
+    6216,
+    6207,
+    6470,
+    5517,
+    5966,
+]
 USED_68 = list(range(36, 48)) + list(range(60, 68))  # the 20 retargeting landmarks, t2bs order
 
 
@@ -42,8 +108,9 @@ def read_obj_vertices(repo: Path, name: str) -> np.ndarray:
     if (repo / rel).exists():
         text = (repo / rel).read_text()
     else:
-        text = subprocess.run(["git", "--git-dir", str(repo), "show", f"HEAD:{rel}"], check=True, capture_output=True,
-                              text=True).stdout
+        text = subprocess.run(
+            ["git", "--git-dir", str(repo), "show", f"HEAD:{rel}"], check=True, capture_output=True, text=True
+        ).stdout
     return np.array([line.split()[1:4] for line in text.splitlines() if line.startswith("v ")], float)
 
 
@@ -52,10 +119,17 @@ def main(repo: str) -> None:
 
     root = Path(repo)
     git_dir = root / ".git" if (root / ".git").exists() else root
-    commit = subprocess.run(["git", "--git-dir", str(git_dir), "rev-parse", "HEAD"], check=True, capture_output=True,
-                            text=True).stdout.strip()
-    meta = json.loads(subprocess.run(["git", "--git-dir", str(git_dir), "show", "HEAD:FaceXModel/vertex_indices.json"],
-                                     check=True, capture_output=True, text=True).stdout)
+    commit = subprocess.run(
+        ["git", "--git-dir", str(git_dir), "rev-parse", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    meta = json.loads(
+        subprocess.run(
+            ["git", "--git-dir", str(git_dir), "show", "HEAD:FaceXModel/vertex_indices.json"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
+    )
     ids = [ICT_68[i] for i in USED_68]
     neutral = read_obj_vertices(git_dir, "generic_neutral_mesh")[ids]  # [20, 3]
     shapes: dict[str, np.ndarray] = {}
@@ -69,7 +143,8 @@ def main(repo: str) -> None:
             shapes[name] = shapes.get(name, 0) + disp
         print(f"{ict:>18} -> {name if name in ARKIT_NAMES else '(not ARKit, skipped)'}", file=sys.stderr)
     table = {
-        "source": "ICT-FaceKit, https://github.com/ICT-VGL/ICT-FaceKit (formerly USC-ICT/ICT-FaceKit), commit " + commit,
+        "source": "ICT-FaceKit, https://github.com/ICT-VGL/ICT-FaceKit (formerly USC-ICT/ICT-FaceKit), commit "
+        + commit,
         "licence": "MIT License, Copyright (c) 2020 USC Institute for Creative Technologies",
         "derived_by": "tools/derive_arkit_landmarks.py",
         "units": "cm; X = subject's left, Y up, Z towards the viewer",

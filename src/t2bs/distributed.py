@@ -85,8 +85,15 @@ def clean_staging(jobs: list[Job]) -> None:
                 shutil.rmtree(stale, ignore_errors=True)
 
 
-def run_jobs(jobs: list[Job], executor: str = "local", workers: int = 1, ray_address: str | None = None,
-             retries: int = 2, desc: str = "jobs", on_done: Callable[[Job, dict], None] | None = None) -> dict[str, dict]:
+def run_jobs(
+    jobs: list[Job],
+    executor: str = "local",
+    workers: int = 1,
+    ray_address: str | None = None,
+    retries: int = 2,
+    desc: str = "jobs",
+    on_done: Callable[[Job, dict], None] | None = None,
+) -> dict[str, dict]:
     """Run every job whose results are missing or outdated; returns {job.name: info} for jobs run now.
 
     ``executor``: "local" (in this process, in order), "process" (``workers`` processes), or
@@ -162,7 +169,9 @@ def _run_ray(pending: list[Job], address: str, retries: int, finish) -> None:
     # max_retries re-runs a task whose worker process or node died; each attempt stages apart.
     remote = ray.remote(execute_attempt)
     refs = {
-        remote.options(num_cpus=j.num_cpus, num_gpus=j.num_gpus, max_retries=retries, retry_exceptions=False).remote(j): j
+        remote.options(num_cpus=j.num_cpus, num_gpus=j.num_gpus, max_retries=retries, retry_exceptions=False).remote(
+            j
+        ): j
         for j in pending
     }
     while refs:

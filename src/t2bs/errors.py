@@ -20,6 +20,7 @@ INTERRUPTED = "interrupted; finished jobs are kept, re-run to resume"
 
 def os_error_line(exc: OSError) -> str:
     """One line for an OSError: the path(s) and what the system said (read-only, no space, ...)."""
+
     def short(name) -> str:
         name = str(name)
         return name if len(name) <= 200 else name[:200] + f"... ({len(name)} characters)"

@@ -102,8 +102,9 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
-def read_array(path: str | os.PathLike, what: str, ndim: int | None = None, trailing: tuple = (),
-               finite: bool = True) -> np.ndarray:
+def read_array(
+    path: str | os.PathLike, what: str, ndim: int | None = None, trailing: tuple = (), finite: bool = True
+) -> np.ndarray:
     """np.load of a project file, validated before use: UserError (one line, with the path) for a
     missing, empty, truncated or pickled file, a wrong number of axes / trailing shape, or NaN."""
     path = Path(path)
@@ -112,15 +113,22 @@ def read_array(path: str | os.PathLike, what: str, ndim: int | None = None, trai
     try:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
-        raise UserError(f"{path}: {what} is not a readable .npy file ({type(exc).__name__}); "
-                        f"delete it and re-run the stage that makes it") from None
+        raise UserError(
+            f"{path}: {what} is not a readable .npy file ({type(exc).__name__}); "
+            f"delete it and re-run the stage that makes it"
+        ) from None
     if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiub":
         raise UserError(f"{path}: {what} is not a numeric array")
-    if (ndim is not None and arr.ndim != ndim) or (trailing and tuple(arr.shape[arr.ndim - len(trailing):]) != tuple(trailing)) \
-            or arr.size == 0:
+    if (
+        (ndim is not None and arr.ndim != ndim)
+        or (trailing and tuple(arr.shape[arr.ndim - len(trailing) :]) != tuple(trailing))
+        or arr.size == 0
+    ):
         want = f"{ndim} axes" + (f" ending in {tuple(trailing)}" if trailing else "") if ndim else "a non-empty array"
         raise UserError(f"{path}: {what} has shape {arr.shape}, expected {want}")
     if finite and not np.isfinite(arr).all():
-        raise UserError(f"{path}: {what} holds NaN or infinite values ({int((~np.isfinite(arr)).sum())} entries); "
-                        f"re-run the stage that makes it")
+        raise UserError(
+            f"{path}: {what} holds NaN or infinite values ({int((~np.isfinite(arr)).sum())} entries); "
+            f"re-run the stage that makes it"
+        )
     return arr

@@ -1,26 +1,26 @@
-"""`t2bs create "PROMPT" -o DIR`: every stage, text to rig, resumable, local or on a cluster.
+"""`create`: every stage, text (or a mesh) to rig, resumable, local or on a cluster; `t2bs create "PROMPT" -o DIR`.
 
-Stages run in order, each through its own subcommand's function so that `create` and the
-single-stage commands behave the same: character (+ renders) -> expression videos -> VCDGS per
-video (independent jobs: in-process, a process pool or Ray) -> blendshape model -> landmarks ->
-report. Every stage skips what is already done for the same inputs and settings, so a re-run
-after a crash, a Ctrl-C or a kill -9 redoes only the unfinished job, and a changed prompt list
-makes only the new videos and rebuilds the model.
+The stages run in order through their library functions (``run(project, config)``), so `create` and the
+single-stage commands behave the same: character (+ renders) -> expression videos -> VCDGS per video (independent
+jobs: in-process, a process pool or Ray) -> blendshape model -> landmarks -> report. Every stage skips what is
+already done for the same inputs and settings, so a re-run after a crash, a Ctrl-C or a kill -9 redoes only the
+unfinished job, and a changed prompt list makes only the new videos and rebuilds the model.
+
+    from t2bs.pipeline import CreateConfig, create
+    create("runs/fox", CreateConfig(prompt="a cartoon fox with big ears", preset="quick"))
 """
 
 from __future__ import annotations
 
-import inspect
+import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import typer
 
 from t2bs.errors import UserError
-from t2bs.project import Project, read_json, write_json
-from t2bs.project import locked
+from t2bs.project import Project, project_lock, read_json, write_json
 
 # The quick preset's default prompt subset: the expressions that move the most distinct regions
 # (eyes, jaw, mouth corners), so the blendshape model spans them within the CPU time budget.
@@ -50,108 +50,149 @@ CREATE_PRESETS = {
 VIDEO_BACKENDS = ("procedural", "cogvideox+sv4d2", "procedural+sv4d2")
 
 
-def invoke(command, **kwargs):
-    """Call a typer command function from Python: given arguments, declared defaults for the rest."""
-    args = {}
-    for name, param in inspect.signature(command).parameters.items():
-        if name in kwargs:
-            args[name] = kwargs[name]
-            continue
-        default = param.default
-        if isinstance(default, typer.models.ParameterInfo):
-            default = default.default
-        if default is ... or default is inspect.Parameter.empty:
-            raise TypeError(f"{command.__name__}: argument {name!r} is required")
-        args[name] = default
-    return command(**args)
+@dataclass
+class CreateConfig:
+    prompt: str  # text describing the character, e.g. "a cartoon fox with big ears"
+    preset: str = "quick"  # quick (CPU minutes) | paper (§4.1 settings, GPU): the defaults of the fields below
+    prompts: str | None = None  # expression prompts: all, a comma list or a prompt-list file (None: the preset's)
+    samples: int = 0  # videos per prompt (0 = the preset's)
+    seed: int = 0  # seed of the character, animation, defects and training
+    character_backend: str = "procedural"  # procedural | diffusers (Shap-E) | command | file
+    mesh: Path | None = None  # bring your own mesh (character backend "file")
+    workers: int = 1  # reconstruction jobs in parallel on this machine (process pool)
+    ray: str | None = None  # run reconstruction jobs on Ray: auto | local | host:port
+    frames: int = 0  # frames per video (0 = the preset's)
+    size: int = 0  # grid frame side in pixels (0 = the preset's)
+    views: int = 0  # orbit views (0 = the paper's 15)
+    defects: str | None = None  # simulated 4D-model defects: clean | mild | paper (None: the preset's)
+    iterations: int = 0  # VCDGS steps per video (0 = the preset's)
+    control_points: int = 0  # VCDGS control points (0 = the preset's)
+    video_backend: str = "procedural"  # procedural | cogvideox+sv4d2 (the paper's chain) | procedural+sv4d2
+    checkpoints: Path | None = None  # folder with cogvideox/ and sv4d2/ weights (the sv4d2 chains)
+    video_steps: int = 0  # denoising steps of the video models (0 = their defaults, 50)
 
 
-@locked("out", "create")  # one run at a time per project (issue 39)
-def create_command(
-    prompt: str = typer.Argument(..., help="Text describing the character, e.g. \"a cartoon fox with big ears\"."),
-    out: Path = typer.Option(..., "-o", "--out", help="Project folder (created, or resumed if it exists)."),
-    preset: str = typer.Option("quick", help="quick (CPU minutes) or paper (§4.1 settings, GPU)."),
-    prompts: str = typer.Option(None, help="Expression prompts: all, a comma list, or a prompt-list file (default: the preset's)."),
-    samples: int = typer.Option(0, help="Videos per prompt (0 = the preset's)."),
-    seed: int = typer.Option(0, help="Seed for the character, animation, defects and training."),
-    character_backend: str = typer.Option("procedural", "--character-backend", help="procedural, diffusers (Shap-E weights, MIT licence), command or file."),
-    mesh: Path = typer.Option(None, help="Bring your own mesh (character backend 'file')."),
-    workers: int = typer.Option(1, help="Reconstruction jobs in parallel on this machine (process pool)."),
-    ray: str = typer.Option(None, "--ray", help="Run reconstruction jobs on Ray: 'auto', 'local' or host:port."),
-    frames: int = typer.Option(0, help="Frames per video (0 = the preset's)."),
-    size: int = typer.Option(0, help="Grid frame side in pixels (0 = the preset's)."),
-    views: int = typer.Option(0, help="Orbit views (0 = the paper's 15)."),
-    defects: str = typer.Option(None, help="Simulated 4D-model defects: clean, mild, paper (default: the preset's)."),
-    iterations: int = typer.Option(0, help="VCDGS steps per video (0 = the preset's)."),
-    control_points: int = typer.Option(0, help="VCDGS control points (0 = the preset's)."),
-    video_backend: str = typer.Option("procedural", "--video-backend", help="procedural (offline animator), "
-                                      "cogvideox+sv4d2 (the paper's chain: CogVideoX image-to-video, then SV4D 2.0 "
-                                      "for the 15-view grid) or procedural+sv4d2 (the animator's front view into SV4D 2.0)."),
-    checkpoints: Path = typer.Option(None, "--checkpoints", help="Folder of the video models' weights: cogvideox/ "
-                                     "(THUDM/CogVideoX-5b-I2V, diffusers layout) and sv4d2/ (sv4d2.safetensors from "
-                                     "stabilityai/sv4d2.0, Stability AI Community License). See docs/SV4D2.md."),
-    video_steps: int = typer.Option(0, help="Denoising steps of the video models (0 = their defaults, 50)."),
-) -> None:
-    """Text -> animatable blendshape rig: runs every stage and writes DIR/report.md."""
-    if video_backend not in VIDEO_BACKENDS:
-        raise UserError(f"--video-backend must be one of {', '.join(VIDEO_BACKENDS)}, got {video_backend!r}")
-    fixed_backend, four_d = (video_backend.split("+") + [None])[:2]
+@dataclass
+class CreateResult:
+    rig: Path  # DIR/blendshapes/model.glb
+    report: Path  # DIR/report.md
+    components: int | None  # shapes in the rig
+    stage_seconds: dict = field(default_factory=dict)  # wall seconds per stage of this run
+
+
+def create(project: Project | str | os.PathLike, config: CreateConfig) -> CreateResult:
+    """Text (or a mesh) -> animatable blendshape rig: runs every stage on one project folder.
+
+    Writes everything the stages write (docs/ARCHITECTURE.md, "The project folder"): character/mesh.glb and its
+    renders, videos/<id>/ grids, recon/<id>/vertices.npy [T, N, 3], blendshapes/model.npz + model.glb (the rig,
+    with ARKit-named shapes where the landmarks allow), landmarks/, and last report.json + report.md (backends,
+    stage seconds, per-video metrics). Resumable: finished work is skipped. Holds the project lock. Raises
+    UserError for an unknown preset or video backend, a missing checkpoint folder (checked before any stage runs),
+    or any stage's input error."""
+    from t2bs.blendshapes import stage as blendshapes_stage
+    from t2bs.character import stage as character_stage
+    from t2bs.recon import stage as recon_stage
+    from t2bs.retarget import landmarks_stage
+    from t2bs.video import stage as video_stage
+
+    c = config
+    if c.video_backend not in VIDEO_BACKENDS:
+        raise UserError(f"--video-backend must be one of {', '.join(VIDEO_BACKENDS)}, got {c.video_backend!r}")
+    fixed_backend, four_d = (c.video_backend.split("+") + [None])[:2]
     if four_d:
-        if checkpoints is None:
-            raise UserError(f"--video-backend {video_backend} needs --checkpoints DIR (with cogvideox/ and sv4d2/ inside)")
+        if c.checkpoints is None:
+            raise UserError(
+                f"--video-backend {c.video_backend} needs --checkpoints DIR (with cogvideox/ and sv4d2/ inside)"
+            )
         from t2bs.video.sv4d2 import check_checkpoint
 
-        check_checkpoint(checkpoints / "sv4d2")  # before hours of other stages
+        check_checkpoint(Path(c.checkpoints) / "sv4d2")  # before hours of other stages
         if fixed_backend == "cogvideox":
             from t2bs.video.cogvideox import check_checkpoint as check_cogvideox
 
-            check_cogvideox(checkpoints / "cogvideox")
-    if preset not in CREATE_PRESETS:
-        raise UserError(f"unknown preset {preset!r}; use one of {', '.join(CREATE_PRESETS)}")
-    if workers < 1:
+            check_cogvideox(Path(c.checkpoints) / "cogvideox")
+    if c.preset not in CREATE_PRESETS:
+        raise UserError(f"unknown preset {c.preset!r}; use one of {', '.join(CREATE_PRESETS)}")
+    if c.workers < 1:
         raise UserError("--workers must be >= 1")
-    p = CREATE_PRESETS[preset]
-    prompts = prompts or p.prompts
-    samples = samples or p.samples
-    project = Project(out)
+    if c.character_backend == "file" and c.mesh is None:
+        raise UserError("--character-backend file needs --mesh PATH")
+    p = CREATE_PRESETS[c.preset]
+    prompts, samples = c.prompts or p.prompts, c.samples or p.samples
+    project = project if isinstance(project, Project) else Project(project)
     times: dict[str, float] = {}
 
-    def stage(name: str, fn, **kwargs) -> None:
+    def stage(name: str, fn, *args) -> None:
         print(f"\n== {name} ==", flush=True)
         t0 = time.perf_counter()
-        invoke(fn, **kwargs)
+        fn(*args)
         times[name] = round(time.perf_counter() - t0, 2)
 
-    from t2bs.blendshapes.commands import blendshapes_command
-    from t2bs.character.commands import character_command
-    from t2bs.recon.commands import reconstruct_command
-    from t2bs.retarget.commands import landmarks_command
-    from t2bs.video.commands import videos_command
-
-    if character_backend == "file" and mesh is None:
-        raise UserError("--character-backend file needs --mesh PATH")
-    grid = {"frames": frames or p.frames, "size": size or p.size, **({"views": views} if views else {})}
-    # A 4D model's grid uses the character's orbit renders: render them at the grid's size.
-    render_size = {"size": grid["size"]} if four_d else {}
-    stage("character", character_command, prompt=prompt, out=out, backend=character_backend, seed=seed, mesh=mesh, **render_size)
-    steps = {"steps": video_steps} if video_steps else {}
-    if fixed_backend == "cogvideox":
-        stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, seed=seed, backend="cogvideox",
-              checkpoint=checkpoints / "cogvideox", **grid, **steps)
-    else:
-        stage("videos", videos_command, project_dir=out, prompts=prompts, samples=samples, defects=defects or p.defects,
-              seed=seed, **grid)
-    if four_d:
-        stage("videos_4d", videos_command, project_dir=out, prompts=prompts, samples=samples, seed=seed, backend="sv4d2",
-              checkpoint=checkpoints / "sv4d2", **steps)
-    stage("reconstruct", reconstruct_command, project_dir=out, preset_name=p.recon, seed=seed, workers=workers,
-          ray=ray, iterations=iterations, control_points=control_points)
-    stage("blendshapes", blendshapes_command, project_dir=out, components=p.components)
-    stage("landmarks", landmarks_command, project_dir=out, show=True)
-    report = write_report(project, prompt, preset, times)
-    print(f"\nrig:     {project.path('blendshapes', 'model.glb')}  ({report['blendshapes'].get('components')} shapes)")
+    with project_lock(project.root, "create"):
+        grid = {"frames": c.frames or p.frames, "size": c.size or p.size, **({"views": c.views} if c.views else {})}
+        # A 4D model's grid uses the character's orbit renders: render them at the grid's size.
+        render_size = {"size": grid["size"]} if four_d else {}
+        stage(
+            "character",
+            character_stage.run,
+            project,
+            character_stage.CharacterConfig(
+                prompt=c.prompt, backend=c.character_backend, seed=c.seed, mesh=c.mesh, **render_size
+            ),
+        )
+        steps = {"steps": c.video_steps} if c.video_steps else {}
+        if fixed_backend == "cogvideox":
+            videos = video_stage.VideosConfig(
+                prompts=prompts,
+                samples=samples,
+                seed=c.seed,
+                backend="cogvideox",
+                checkpoint=Path(c.checkpoints) / "cogvideox",
+                **grid,
+                **steps,
+            )
+        else:
+            videos = video_stage.VideosConfig(
+                prompts=prompts, samples=samples, defects=c.defects or p.defects, seed=c.seed, **grid
+            )
+        stage("videos", video_stage.run, project, videos)
+        if four_d:
+            stage(
+                "videos_4d",
+                video_stage.run,
+                project,
+                video_stage.VideosConfig(
+                    prompts=prompts,
+                    samples=samples,
+                    seed=c.seed,
+                    backend="sv4d2",
+                    checkpoint=Path(c.checkpoints) / "sv4d2",
+                    **steps,
+                ),
+            )
+        stage(
+            "reconstruct",
+            recon_stage.run,
+            project,
+            recon_stage.ReconstructConfig(
+                preset_name=p.recon,
+                seed=c.seed,
+                workers=c.workers,
+                ray=c.ray,
+                iterations=c.iterations,
+                control_points=c.control_points,
+            ),
+        )
+        stage(
+            "blendshapes", blendshapes_stage.run, project, blendshapes_stage.BlendshapesConfig(components=p.components)
+        )
+        stage("landmarks", landmarks_stage.run, project, landmarks_stage.LandmarksConfig(show=True))
+        report = write_report(project, c.prompt, c.preset, times)
+    rig = project.path("blendshapes", "model.glb")
+    print(f"\nrig:     {rig}  ({report['blendshapes'].get('components')} shapes)")
     print(f"report:  {project.path('report.md')}")
-    print(f"view:    t2bs view {out}")
+    print(f"view:    t2bs view {project.root}")
+    return CreateResult(rig, project.path("report.md"), report["blendshapes"].get("components"), times)
 
 
 def write_report(project: Project, prompt: str, preset: str, times: dict[str, float]) -> dict:
@@ -163,7 +204,11 @@ def write_report(project: Project, prompt: str, preset: str, times: dict[str, fl
         if not (recon_dir / "done.json").exists():
             continue
         metrics = read_json(recon_dir / "metrics.json") if (recon_dir / "metrics.json").exists() else {}
-        row = {"video": recon_dir.name, "seconds": metrics.get("seconds"), "perceptual_loss": metrics.get("perceptual_loss")}
+        row = {
+            "video": recon_dir.name,
+            "seconds": metrics.get("seconds"),
+            "perceptual_loss": metrics.get("perceptual_loss"),
+        }
         geometry = metrics.get("geometry") or {}
         static = metrics.get("geometry_static") or {}
         expression = metrics.get("expression") or {}
@@ -225,26 +270,42 @@ def _checkpoints(info: dict) -> list[str]:
 def _write_markdown(project: Project, report: dict) -> None:
     from t2bs.project import atomic_path
 
-    lines = [f"# t2bs report: {report['prompt']}", "", f"Preset `{report['preset']}`; total {report['total_seconds']:.0f} s.", "",
-             "## Backends", ""]
+    lines = [
+        f"# t2bs report: {report['prompt']}",
+        "",
+        f"Preset `{report['preset']}`; total {report['total_seconds']:.0f} s.",
+        "",
+        "## Backends",
+        "",
+    ]
     ckpts = report.get("checkpoints", {})
-    lines += [f"- {stage}: {backend}" + (f" (checkpoints: {', '.join(ckpts[stage])})" if stage in ckpts else "")
-              for stage, backend in report["backends"].items()]
+    lines += [
+        f"- {stage}: {backend}" + (f" (checkpoints: {', '.join(ckpts[stage])})" if stage in ckpts else "")
+        for stage, backend in report["backends"].items()
+    ]
     if report.get("motion_source") == "autorig" and report.get("autorig"):
         a = report["autorig"]
-        lines += ["", f"Motion source: the **auto rig** (the mesh had no face rig): {len(a['shapes'])} ARKit shapes from "
-                  f"{a['landmarks']} landmarks in character/autorig.glb; mouth: {a.get('mouth')}."]
+        lines += [
+            "",
+            f"Motion source: the **auto rig** (the mesh had no face rig): {len(a['shapes'])} ARKit shapes from "
+            f"{a['landmarks']} landmarks in character/autorig.glb; mouth: {a.get('mouth')}.",
+        ]
         why: dict[str, list[str]] = {}
         for name, reason in (a.get("missing") or {}).items():
             why.setdefault(reason, []).append(name)
         lines += [f"- missing {', '.join(names)}: {reason}" for reason, names in why.items()]
     lines += ["", "## Stage times (s)", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in report["stage_seconds"].items()]
-    lines += ["", "## Videos", "",
-              "Expression: each frame's head motion taken out, over the vertices whose true non-rigid motion exceeds "
-              "0.5 % of the diagonal; rigid = the neutral moved by the true head motion (geometry/metrics.py).", "",
-              "| video | expression p2p (rigid) | recovered / cosine | p2p moving (static) | NC (static) | seconds | contact sheet |",
-              "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Videos",
+        "",
+        "Expression: each frame's head motion taken out, over the vertices whose true non-rigid motion exceeds "
+        "0.5 % of the diagonal; rigid = the neutral moved by the true head motion (geometry/metrics.py).",
+        "",
+        "| video | expression p2p (rigid) | recovered / cosine | p2p moving (static) | NC (static) | seconds | contact sheet |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for v in report["videos"]:
         expr = f"{v['expr_p2p']:.4f} ({v['expr_rigid']:.4f})" if v.get("expr_p2p") is not None else "-"
         rec = f"{v['recovered']:.2f} / {v['cosine']:.2f}" if v.get("recovered") is not None else "-"
@@ -255,17 +316,29 @@ def _write_markdown(project: Project, report: dict) -> None:
     b = report["blendshapes"]
     lines += ["", "## Blendshape model", "", f"{b.get('components', 0)} shapes in blendshapes/model.glb."]
     if "explained_variance_first10" in b:
-        lines.append(f"Explained variance of the first shapes: {', '.join(f'{x:.3f}' for x in b['explained_variance_first10'])}.")
+        lines.append(
+            f"Explained variance of the first shapes: {', '.join(f'{x:.3f}' for x in b['explained_variance_first10'])}."
+        )
     if "arkit" in b:
-        lines += ["", "## ARKit shapes", "", f"{len(b['arkit'])} of the 52 present: {', '.join(b['arkit']) or 'none'}.",
-                  "Absent, and why: blendshapes/arkit.json.", "", "![ARKit shapes](blendshapes/arkit_sheet.png)"]
-    lines += ["", "## Opening the rig", "",
-              f"- `t2bs view {project.root}`: sliders for the ARKit shapes (grouped), the named shapes and the PCA components.",
-              "- Blender: File > Import > glTF 2.0, pick blendshapes/model.glb; the shapes are the mesh's shape keys.",
-              "- three.js: `GLTFLoader` loads blendshapes/model.glb; `mesh.morphTargetDictionary` maps the names "
-              "(`jawOpen`, `eyeBlinkLeft`, ...) to `mesh.morphTargetInfluences`.",
-              f"- VRM (VTubing apps, three-vrm): `t2bs export {project.root} --format vrm --license CC-BY-4.0`.",
-              f"- Live Link Face capture: `t2bs retarget {project.root} --driver take.csv`."]
+        lines += [
+            "",
+            "## ARKit shapes",
+            "",
+            f"{len(b['arkit'])} of the 52 present: {', '.join(b['arkit']) or 'none'}.",
+            "Absent, and why: blendshapes/arkit.json.",
+            "",
+            "![ARKit shapes](blendshapes/arkit_sheet.png)",
+        ]
+    lines += [
+        "",
+        "## Opening the rig",
+        "",
+        f"- `t2bs view {project.root}`: sliders for the ARKit shapes (grouped), the named shapes and the PCA components.",
+        "- Blender: File > Import > glTF 2.0, pick blendshapes/model.glb; the shapes are the mesh's shape keys.",
+        "- three.js: `GLTFLoader` loads blendshapes/model.glb; `mesh.morphTargetDictionary` maps the names "
+        "(`jawOpen`, `eyeBlinkLeft`, ...) to `mesh.morphTargetInfluences`.",
+        f"- VRM (VTubing apps, three-vrm): `t2bs export {project.root} --format vrm --license CC-BY-4.0`.",
+        f"- Live Link Face capture: `t2bs retarget {project.root} --driver take.csv`.",
+    ]
     with atomic_path(project.path("report.md")) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
-

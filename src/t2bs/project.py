@@ -22,7 +22,15 @@ import numpy as np
 
 from t2bs.errors import UserError
 from t2bs.fileio import (  # noqa: F401  (re-exported: the project API writes and reads through them)
-    InvalidJsonError, atomic_path, read_array, read_json, to_jsonable, write_image, write_json, write_npz)
+    InvalidJsonError,
+    atomic_path,
+    read_array,
+    read_json,
+    to_jsonable,
+    write_image,
+    write_json,
+    write_npz,
+)
 
 
 def content_key(*parts: Any) -> str:
@@ -32,8 +40,11 @@ def content_key(*parts: Any) -> str:
         if isinstance(part, Path):
             if part.is_dir():
                 # Hidden files and folders (temp files, a killed run's .t2bs-staging-*) are not content.
-                for f in sorted(p for p in part.rglob("*")
-                                if p.is_file() and not any(x.startswith(".") for x in p.relative_to(part).parts)):
+                for f in sorted(
+                    p
+                    for p in part.rglob("*")
+                    if p.is_file() and not any(x.startswith(".") for x in p.relative_to(part).parts)
+                ):
                     h.update(str(f.relative_to(part)).encode())
                     h.update(_file_digest(f))
             else:
@@ -131,7 +142,9 @@ class Project:
         from t2bs.geometry.io import load_mesh
 
         if not self.mesh_path.exists():
-            raise UserError(f"{self.root}: no character yet (run `t2bs character` or `t2bs render MESH -o {self.root}`)")
+            raise UserError(
+                f"{self.root}: no character yet (run `t2bs character` or `t2bs render MESH -o {self.root}`)"
+            )
         return load_mesh(self.mesh_path)
 
 
@@ -221,7 +234,6 @@ def project_lock(root: str | os.PathLike, command: str) -> Iterator[None]:
     stage commands). A folder created here and left empty by a failed command is removed again."""
     import fcntl
 
-
     root = Path(root).absolute()
     if root in _held_locks:
         _held_locks[root][1] += 1
@@ -237,16 +249,20 @@ def project_lock(root: str | os.PathLike, command: str) -> Iterator[None]:
         root.mkdir(parents=True, exist_ok=True)
         fh = open(root / LOCK_NAME, "a+")
     except OSError as exc:
-        raise UserError(f"{root}: cannot write to the project folder ({exc.strerror or exc}); "
-                        f"check its permissions, or copy it somewhere writable") from None
+        raise UserError(
+            f"{root}: cannot write to the project folder ({exc.strerror or exc}); "
+            f"check its permissions, or copy it somewhere writable"
+        ) from None
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         fh.seek(0)
         holder = fh.read().strip() or "another t2bs process"
         fh.close()
-        raise UserError(f"{root}: another t2bs command is working on this project ({holder}); wait for it to "
-                        f"finish, or stop it, then re-run") from None
+        raise UserError(
+            f"{root}: another t2bs command is working on this project ({holder}); wait for it to "
+            f"finish, or stop it, then re-run"
+        ) from None
     _held_locks[root] = [fh, 1]
     ok = False
     try:
@@ -263,24 +279,3 @@ def project_lock(root: str | os.PathLike, command: str) -> Iterator[None]:
         if created and not ok and [p.name for p in root.iterdir()] == [LOCK_NAME]:
             (root / LOCK_NAME).unlink(missing_ok=True)
             root.rmdir()
-
-
-def locked(param: str, command: str):
-    """Decorator for a CLI command: hold ``project_lock`` on the folder its argument ``param`` names."""
-    import functools
-    import inspect
-
-    def wrap(fn):
-        sig = inspect.signature(fn)
-
-        @functools.wraps(fn)
-        def run(*args, **kwargs):
-            folder = sig.bind_partial(*args, **kwargs).arguments.get(param)
-            if folder is None:
-                folder = sig.parameters[param].default
-            with project_lock(folder, command):
-                return fn(*args, **kwargs)
-
-        return run
-
-    return wrap

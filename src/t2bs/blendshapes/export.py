@@ -48,8 +48,6 @@ def target_ranges(model: BlendshapeModel) -> np.ndarray:
     return np.maximum(rng, 1e-9).astype(np.float64)
 
 
-
-
 def _named(arkit) -> tuple[list[str], np.ndarray | None]:
     """(names, weights [S, K]) of ARKit shapes given as an ``ArkitShapes`` or None."""
     if arkit is None or not len(arkit.names):
@@ -86,8 +84,14 @@ def rig_mesh(model: BlendshapeModel, character: Mesh, arkit=None) -> Mesh:
     return replace(character, vertices=model.neutral.astype(np.float32), morph_targets=dict(zip(names, offsets)))
 
 
-def export_glb(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
-               fps: float = 8.0, arkit=None) -> Path:
+def export_glb(
+    model: BlendshapeModel,
+    character: Mesh,
+    path: str | os.PathLike,
+    capture: str | None = None,
+    fps: float = 8.0,
+    arkit=None,
+) -> Path:
     """Write ``model`` as a .glb; ``capture`` (a video id of the model) becomes its animation;
     ``arkit`` (``ArkitShapes``) adds the ARKit-named shapes first."""
     from t2bs.geometry.io import save_mesh
@@ -100,8 +104,14 @@ def export_glb(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
     return save_mesh(mesh, path, animation=animation)
 
 
-def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike, capture: str | None = None,
-               fps: float = 8.0, arkit=None) -> Path:
+def export_usd(
+    model: BlendshapeModel,
+    character: Mesh,
+    path: str | os.PathLike,
+    capture: str | None = None,
+    fps: float = 8.0,
+    arkit=None,
+) -> Path:
     """Write ``model`` as USD (UsdSkel blend shapes); ImportError if usd-core is not installed."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
 
@@ -126,8 +136,9 @@ def export_usd(model: BlendshapeModel, character: Mesh, path: str | os.PathLike,
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
         mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(rig_extent(model.neutral, offsets)))
         rgb = srgb_to_linear(character.vertex_rgb())
-        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
-                                                UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(rgb))
+        UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+            "displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex
+        ).Set(Vt.Vec3fArray.FromNumpy(rgb))
         skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
         skel.CreateJointsAttr([])
         binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())

@@ -43,8 +43,9 @@ class FitConfig:
     seed: int = 0  # reserved for stochastic variants; the fit itself is deterministic
 
 
-def fit_geometry(model: BlendshapeModel, targets: np.ndarray, prior: float = 1e-4,
-                 vertex_mask: np.ndarray | None = None) -> np.ndarray:
+def fit_geometry(
+    model: BlendshapeModel, targets: np.ndarray, prior: float = 1e-4, vertex_mask: np.ndarray | None = None
+) -> np.ndarray:
     """Closed-form weights [..., K] for target vertex positions [..., N, 3] (batched over frames)."""
     x = np.asarray(targets, dtype=np.float64)
     if x.shape[-2:] != model.neutral.shape:
@@ -62,10 +63,15 @@ def fit_geometry(model: BlendshapeModel, targets: np.ndarray, prior: float = 1e-
     return w.reshape(*lead, model.num_components)
 
 
-def fit_frames(model: BlendshapeModel, colors: np.ndarray | None = None, faces: np.ndarray | None = None,
-               target_vertices: np.ndarray | None = None,
-               target_images: np.ndarray | None = None, cameras: list | None = None,
-               config: FitConfig | None = None) -> np.ndarray:
+def fit_frames(
+    model: BlendshapeModel,
+    colors: np.ndarray | None = None,
+    faces: np.ndarray | None = None,
+    target_vertices: np.ndarray | None = None,
+    target_images: np.ndarray | None = None,
+    cameras: list | None = None,
+    config: FitConfig | None = None,
+) -> np.ndarray:
     """Weights [T, K] minimising L_geo + rgb_weight L_rgb + prior for T frames.
 
     target_vertices [T, N, 3] (L_geo; also gives the target images if ``target_images`` is None),
@@ -118,8 +124,15 @@ def _refine_rgb(model, w0, colors, faces, target_vertices, target_images, camera
     # no step size to tune) handles in a few iterations.
     unit = diag * np.sqrt(n)
     u = torch.tensor(w0 / unit, dtype=torch.float32, requires_grad=True)
-    opt = torch.optim.LBFGS([u], lr=1.0, max_iter=cfg.rgb_steps, history_size=10, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-9, tolerance_change=1e-12)
+    opt = torch.optim.LBFGS(
+        [u],
+        lr=1.0,
+        max_iter=cfg.rgb_steps,
+        history_size=10,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-9,
+        tolerance_change=1e-12,
+    )
 
     def closure():
         opt.zero_grad()
@@ -147,8 +160,9 @@ def _resize_images(images, size: int):
     return x.permute(0, 2, 3, 1)
 
 
-def visible_vertices(vertices: np.ndarray, faces: np.ndarray | None, camera, depth_bins: int = 96,
-                     depth_tol: float = 0.02) -> np.ndarray:
+def visible_vertices(
+    vertices: np.ndarray, faces: np.ndarray | None, camera, depth_bins: int = 96, depth_tol: float = 0.02
+) -> np.ndarray:
     """[T, N] bool: vertices facing ``camera`` and not behind a nearer vertex in a coarse depth buffer.
 
     A cheap stand-in for a rasterised depth test that works batched on CPU; the mesh renderer's
@@ -180,18 +194,24 @@ def splat_vertices(vertices, colors, camera, visible, background: float = 1.0):
     Each visible vertex spreads its colour over a (2 radius)^2 pixel window around its projection
     with an isotropic Gaussian (sigma from the mean vertex spacing, radius ~ 2 sigma); colour = weighted mean, coverage
     alpha = 1 - exp(-sum of weights) blends with the background.
+
+    Why not the splat rasterizer (t2bs.render.splat.rasterize_gaussians): it draws 3D Gaussians
+    (world-space scales) composited front to back by depth, so a vertex's gradient depends on the
+    depth order and on what covers it. This splatter has no depth order at all (visibility is a
+    fixed mask decided once, ``visible_vertices``), a footprint of fixed size in pixels, and a
+    normalised weighted mean: its images are not the rasterizer's, and the fit's loss landscape
+    was tuned on these. What it shares is the projection (``project_points``, the camera model of
+    geometry.camera in torch).
     """
     import torch
 
+    from t2bs.recon.tracks import project_points
+
     t, n, _ = vertices.shape
     h, w = camera.height, camera.width
-    r = torch.as_tensor(camera.world_to_camera[:3, :3], dtype=vertices.dtype)
-    tr = torch.as_tensor(camera.world_to_camera[:3, 3], dtype=vertices.dtype)
-    k = torch.as_tensor(camera.K, dtype=vertices.dtype)
-    pc = vertices @ r.T + tr  # [T, N, 3] camera space (OpenCV)
-    z = pc[..., 2].clamp_min(1e-4)
-    u = k[0, 0] * pc[..., 0] / z + k[0, 2] - 0.5  # pixel centres at integer coordinates
-    v = k[1, 1] * pc[..., 1] / z + k[1, 2] - 0.5
+    viewmats = torch.as_tensor(camera.world_to_camera, dtype=vertices.dtype).expand(t, 4, 4)
+    ks = torch.as_tensor(camera.K, dtype=vertices.dtype).expand(t, 3, 3)
+    u, v = (project_points(vertices, viewmats, ks) - 0.5).unbind(-1)  # [T, N] pixel centres at integer coordinates
     sigma = _splat_sigma(n, w)
     radius = max(2, int(np.ceil(2 * sigma)))
     base_u, base_v = torch.floor(u.detach()), torch.floor(v.detach())
@@ -209,8 +229,11 @@ def splat_vertices(vertices, colors, camera, visible, background: float = 1.0):
     g = torch.stack(wts)  # [taps, T, N]
     # One index_add over all taps (a scatter per tap with an expanded index is ~50x slower on CPU).
     den = torch.zeros(t * h * w, dtype=vertices.dtype).index_add(0, idx_all, g.reshape(-1)).reshape(t, h * w)
-    num = torch.zeros(t * h * w, 3, dtype=vertices.dtype).index_add(
-        0, idx_all, (g[..., None] * col).reshape(-1, 3)).reshape(t, h * w, 3)
+    num = (
+        torch.zeros(t * h * w, 3, dtype=vertices.dtype)
+        .index_add(0, idx_all, (g[..., None] * col).reshape(-1, 3))
+        .reshape(t, h * w, 3)
+    )
     alpha = 1 - torch.exp(-den)[..., None]
     rgb = num / (den[..., None] + 1e-6)
     return (alpha * rgb + (1 - alpha) * background).reshape(t, h, w, 3)

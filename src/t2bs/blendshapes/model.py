@@ -158,13 +158,18 @@ def build_model(
     lengths = [int(np.asarray(captures[v]).shape[0]) for v in ids]
     # [M, 3N] float32 storage (a character x 60 videos x 49 frames fits); products in float64.
     data = np.concatenate(
-        [(np.asarray(captures[v], np.float64) - neutral.astype(np.float64)).reshape(length, -1) for v, length in zip(ids, lengths)]
+        [
+            (np.asarray(captures[v], np.float64) - neutral.astype(np.float64)).reshape(length, -1)
+            for v, length in zip(ids, lengths)
+        ]
     ).astype(np.float32)
     s, vt = _svd_rows(data)  # [R], [R, 3N]
     total = float(np.einsum("ij,ij->", data, data, dtype=np.float64))
     if total <= 0 or s.size == 0 or s[0] <= 0:
-        raise UserError("captures do not move: every frame equals the neutral mesh, nothing to model"
-                        + (" (after taking each frame's head motion out)" if remove_head_motion else ""))
+        raise UserError(
+            "captures do not move: every frame equals the neutral mesh, nothing to model"
+            + (" (after taking each frame's head motion out)" if remove_head_motion else "")
+        )
     if rank_tol is None:
         scale = max(float(np.abs(neutral).max()), max(float(np.abs(np.asarray(captures[v])).max()) for v in ids))
         noise = np.finfo(np.float32).eps * scale * (np.sqrt(data.shape[0]) + np.sqrt(data.shape[1]))
@@ -191,9 +196,18 @@ def build_model(
         names=[f"pc{i:03d}" for i in range(k)],
         explained_variance=(s**2 / total).astype(np.float64),
         capture_weights={v: w.astype(np.float32) for v, w in zip(ids, split)},
-        meta={"source": source, "components_requested": int(components), "rank": rank, "frames": int(sum(lengths)),
-              "captures": len(ids), "rank_tol": float(tol), "centred": False, "head_motion_removed": remove_head_motion,
-              "visible_fraction": VISIBLE_FRACTION, "visible": int(visible.sum())},
+        meta={
+            "source": source,
+            "components_requested": int(components),
+            "rank": rank,
+            "frames": int(sum(lengths)),
+            "captures": len(ids),
+            "rank_tol": float(tol),
+            "centred": False,
+            "head_motion_removed": remove_head_motion,
+            "visible_fraction": VISIBLE_FRACTION,
+            "visible": int(visible.sum()),
+        },
         visible=visible,
         head_tracks=head_tracks,
     )
@@ -298,14 +312,22 @@ def load_model(path: str | os.PathLike) -> BlendshapeModel:
     if basis.ndim != 3 or basis.shape[1:] != neutral.shape:
         raise UserError(f"{path}: basis {basis.shape} does not match neutral {neutral.shape}")
     # Read back from a project folder: refuse what would poison every output made from it.
-    if neutral.ndim != 2 or neutral.shape[1] != 3 or len(data["names"]) != len(basis) \
-            or len(data["singular_values"]) != len(basis):
-        raise UserError(f"{path}: blendshape model arrays disagree (neutral {neutral.shape}, basis {basis.shape}, "
-                        f"{len(data['names'])} names, {len(data['singular_values'])} singular values)")
+    if (
+        neutral.ndim != 2
+        or neutral.shape[1] != 3
+        or len(data["names"]) != len(basis)
+        or len(data["singular_values"]) != len(basis)
+    ):
+        raise UserError(
+            f"{path}: blendshape model arrays disagree (neutral {neutral.shape}, basis {basis.shape}, "
+            f"{len(data['names'])} names, {len(data['singular_values'])} singular values)"
+        )
     for key in ("neutral", "basis", "singular_values"):
         if data[key].dtype.kind not in "fiu" or not np.isfinite(data[key]).all():
-            raise UserError(f"{path}: blendshape model {key!r} holds NaN, infinite or non-numeric values; "
-                            f"rebuild it with `t2bs blendshapes DIR`")
+            raise UserError(
+                f"{path}: blendshape model {key!r} holds NaN, infinite or non-numeric values; "
+                f"rebuild it with `t2bs blendshapes DIR`"
+            )
     ids = [str(s) for s in data.get("capture_ids", np.array([], dtype=str))]
     ev = data.get("explained_variance")
     sem_w = data.get("semantic_weights")
@@ -320,7 +342,12 @@ def load_model(path: str | os.PathLike) -> BlendshapeModel:
         semantic_weights=None if sem_w is None or sem_w.shape[0] == 0 else sem_w.astype(np.float32),
         semantic_sources=[str(s) for s in data.get("semantic_sources", np.array([], dtype=str))],
         meta=json.loads(str(data["meta"])) if "meta" in data else {},
-        visible=data["visible"].astype(bool) if "visible" in data and data["visible"].shape == (basis.shape[0],) else None,
-        head_tracks={vid: (data[f"head_rotations_{i:04d}"], data[f"head_translations_{i:04d}"])
-                     for i, vid in enumerate(ids) if f"head_rotations_{i:04d}" in data},
+        visible=data["visible"].astype(bool)
+        if "visible" in data and data["visible"].shape == (basis.shape[0],)
+        else None,
+        head_tracks={
+            vid: (data[f"head_rotations_{i:04d}"], data[f"head_translations_{i:04d}"])
+            for i, vid in enumerate(ids)
+            if f"head_rotations_{i:04d}" in data
+        },
     )

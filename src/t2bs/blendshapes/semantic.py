@@ -65,8 +65,9 @@ def shape_name(expression: str) -> str:
     return slug or "expression"
 
 
-def semantic_shapes(model: BlendshapeModel, captures: dict[str, np.ndarray],
-                    expressions: dict[str, str] | None = None) -> tuple[list[str], np.ndarray, list[str]]:
+def semantic_shapes(
+    model: BlendshapeModel, captures: dict[str, np.ndarray], expressions: dict[str, str] | None = None
+) -> tuple[list[str], np.ndarray, list[str]]:
     """Named shapes: (names [S], weights [S, K] in the basis, sources ["video_id:frame"]).
 
     ``captures``: video_id -> [T, N, 3]; ``expressions``: video_id -> prompt text (default: from the

@@ -29,23 +29,53 @@ import numpy as np
 
 # preset -> recipes, each [(shape, weight), ...]; the first recipe whose shapes all exist is used.
 PRESET_RECIPES: dict[str, list[list[tuple[str, float]]]] = {
-    "happy": [[("happy", 1.0)], [("smile", 1.0)], [("mouthSmileLeft", 1.0), ("mouthSmileRight", 1.0), ("cheekSquintLeft", 0.5), ("cheekSquintRight", 0.5)],
-              [("mouthSmileLeft", 1.0), ("mouthSmileRight", 1.0)]],
-    "angry": [[("angry", 1.0)], [("frown", 1.0)], [("browDownLeft", 1.0), ("browDownRight", 1.0), ("mouthFrownLeft", 0.6), ("mouthFrownRight", 0.6)],
-              [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("mouthPressLeft", 0.5), ("mouthPressRight", 0.5)]],
-    "sad": [[("sad", 1.0)], [("disappointed", 1.0)], [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("browInnerUp", 1.0)],
-            [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("mouthShrugLower", 0.5)], [("mouthShrugLower", 1.0), ("mouthRollLower", 0.5)]],
-    "relaxed": [[("chill", 1.0)], [("mouthSmileLeft", 0.4), ("mouthSmileRight", 0.4), ("eyeBlinkLeft", 0.3), ("eyeBlinkRight", 0.3)],
-                [("smile", 0.4), ("blink", 0.3)]],
-    "surprised": [[("surprised", 1.0)], [("eyeWideLeft", 1.0), ("eyeWideRight", 1.0), ("jawOpen", 0.5)], [("brow_up", 1.0), ("jaw_open", 0.5)],
-                  [("jawOpen", 0.6), ("mouthFunnel", 0.4)]],
+    "happy": [
+        [("happy", 1.0)],
+        [("smile", 1.0)],
+        [("mouthSmileLeft", 1.0), ("mouthSmileRight", 1.0), ("cheekSquintLeft", 0.5), ("cheekSquintRight", 0.5)],
+        [("mouthSmileLeft", 1.0), ("mouthSmileRight", 1.0)],
+    ],
+    "angry": [
+        [("angry", 1.0)],
+        [("frown", 1.0)],
+        [("browDownLeft", 1.0), ("browDownRight", 1.0), ("mouthFrownLeft", 0.6), ("mouthFrownRight", 0.6)],
+        [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("mouthPressLeft", 0.5), ("mouthPressRight", 0.5)],
+    ],
+    "sad": [
+        [("sad", 1.0)],
+        [("disappointed", 1.0)],
+        [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("browInnerUp", 1.0)],
+        [("mouthFrownLeft", 1.0), ("mouthFrownRight", 1.0), ("mouthShrugLower", 0.5)],
+        [("mouthShrugLower", 1.0), ("mouthRollLower", 0.5)],
+    ],
+    "relaxed": [
+        [("chill", 1.0)],
+        [("mouthSmileLeft", 0.4), ("mouthSmileRight", 0.4), ("eyeBlinkLeft", 0.3), ("eyeBlinkRight", 0.3)],
+        [("smile", 0.4), ("blink", 0.3)],
+    ],
+    "surprised": [
+        [("surprised", 1.0)],
+        [("eyeWideLeft", 1.0), ("eyeWideRight", 1.0), ("jawOpen", 0.5)],
+        [("brow_up", 1.0), ("jaw_open", 0.5)],
+        [("jawOpen", 0.6), ("mouthFunnel", 0.4)],
+    ],
     "aa": [[("jawOpen", 1.0)], [("jaw_open", 1.0)]],
-    "ih": [[("jawOpen", 0.25), ("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5)], [("jaw_open", 0.25), ("smile", 0.5)]],
+    "ih": [
+        [("jawOpen", 0.25), ("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5)],
+        [("jaw_open", 0.25), ("smile", 0.5)],
+    ],
     "ou": [[("mouthPucker", 1.0), ("jawOpen", 0.15)], [("mouthFunnel", 0.8), ("jawOpen", 0.2)], [("jaw_open", 0.3)]],
-    "ee": [[("mouthStretchLeft", 0.8), ("mouthStretchRight", 0.8), ("jawOpen", 0.2)],
-           [("mouthSmileLeft", 0.6), ("mouthSmileRight", 0.6), ("jawOpen", 0.2)], [("smile", 0.6), ("jaw_open", 0.2)]],
+    "ee": [
+        [("mouthStretchLeft", 0.8), ("mouthStretchRight", 0.8), ("jawOpen", 0.2)],
+        [("mouthSmileLeft", 0.6), ("mouthSmileRight", 0.6), ("jawOpen", 0.2)],
+        [("smile", 0.6), ("jaw_open", 0.2)],
+    ],
     "oh": [[("mouthFunnel", 1.0), ("jawOpen", 0.4)], [("jawOpen", 0.6), ("mouthPucker", 0.5)], [("jaw_open", 0.6)]],
-    "blink": [[("eyeBlinkLeft", 1.0), ("eyeBlinkRight", 1.0)], [("blink", 1.0)], [("blink_left", 1.0), ("blink_right", 1.0)]],
+    "blink": [
+        [("eyeBlinkLeft", 1.0), ("eyeBlinkRight", 1.0)],
+        [("blink", 1.0)],
+        [("blink_left", 1.0), ("blink_right", 1.0)],
+    ],
     "blinkLeft": [[("eyeBlinkLeft", 1.0)], [("blink_left", 1.0)]],
     "blinkRight": [[("eyeBlinkRight", 1.0)], [("blink_right", 1.0)]],
     "lookUp": [[("eyeLookUpLeft", 1.0), ("eyeLookUpRight", 1.0)], [("look_up", 1.0)]],
@@ -70,8 +100,13 @@ LICENSES = {
     "CC-BY-ND-4.0": "https://creativecommons.org/licenses/by-nd/4.0/",
 }
 # What each licence allows, in VRM meta terms (open licences allow everyone everything they grant).
-_OPEN = {"avatarPermission": "everyone", "commercialUsage": "corporation", "allowRedistribution": True,
-         "modification": "allowModificationRedistribution", "creditNotation": "required"}
+_OPEN = {
+    "avatarPermission": "everyone",
+    "commercialUsage": "corporation",
+    "allowRedistribution": True,
+    "modification": "allowModificationRedistribution",
+    "creditNotation": "required",
+}
 LICENSE_META = {
     "CC0-1.0": {**_OPEN, "creditNotation": "unnecessary"},
     "CC-BY-4.0": _OPEN,
@@ -81,8 +116,13 @@ LICENSE_META = {
     "CC-BY-ND-4.0": {**_OPEN, "modification": "prohibited"},
 }
 # Conservative VRM defaults for a licence we cannot read (VRM 1.0's own defaults).
-_CLOSED = {"avatarPermission": "onlyAuthor", "commercialUsage": "personalNonProfit", "allowRedistribution": False,
-           "modification": "prohibited", "creditNotation": "required"}
+_CLOSED = {
+    "avatarPermission": "onlyAuthor",
+    "commercialUsage": "personalNonProfit",
+    "allowRedistribution": False,
+    "modification": "prohibited",
+    "creditNotation": "required",
+}
 
 
 def license_url(license: str) -> str:
@@ -129,8 +169,16 @@ _BONES = {
 }
 
 
-def export_vrm(model, character, path: str | os.PathLike, name: str, authors: list[str], license: str,
-               arkit=None, version: str = "1") -> tuple[Path, dict]:
+def export_vrm(
+    model,
+    character,
+    path: str | os.PathLike,
+    name: str,
+    authors: list[str],
+    license: str,
+    arkit=None,
+    version: str = "1",
+) -> tuple[Path, dict]:
     """Write the rig as a VRM 1.0 file; returns (path, {"presets": bound, "unbound": [...], "custom": [...]})."""
     import pygltflib
 
@@ -168,29 +216,46 @@ def export_vrm(model, character, path: str | os.PathLike, name: str, authors: li
     def binds(recipe):
         return [{"node": 0, "index": names.index(s), "weight": float(w)} for s, w in recipe]
 
-    preset = {p: {"morphTargetBinds": binds(r), "isBinary": False,
-                  "overrideBlink": "none", "overrideLookAt": "none", "overrideMouth": "none"} for p, r in bound.items()}
+    preset = {
+        p: {
+            "morphTargetBinds": binds(r),
+            "isBinary": False,
+            "overrideBlink": "none",
+            "overrideLookAt": "none",
+            "overrideMouth": "none",
+        }
+        for p, r in bound.items()
+    }
     # An emotion whose recipe closes the eyes itself blends with the blink presets instead of adding to them.
     for p in ("happy", "angry", "sad", "relaxed", "surprised"):
         if p in preset and any("Blink" in s or "blink" in s for s, _ in bound[p]):
             preset[p]["overrideBlink"] = "blend"
     custom_names = list(arkit.names) if arkit is not None else []
     custom = {n: {"morphTargetBinds": binds([(n, 1.0)]), "isBinary": False} for n in custom_names}
-    meta = {"name": name, "version": version, "authors": authors, "licenseUrl": VPL_URL,
-            **({"otherLicenseUrl": url} if url != VPL_URL else {}),
-            **LICENSE_META.get(license, _CLOSED), "allowExcessivelyViolentUsage": False,
-            "allowExcessivelySexualUsage": False, "allowPoliticalOrReligiousUsage": False,
-            "allowAntisocialOrHateUsage": False}
+    meta = {
+        "name": name,
+        "version": version,
+        "authors": authors,
+        "licenseUrl": VPL_URL,
+        **({"otherLicenseUrl": url} if url != VPL_URL else {}),
+        **LICENSE_META.get(license, _CLOSED),
+        "allowExcessivelyViolentUsage": False,
+        "allowExcessivelySexualUsage": False,
+        "allowPoliticalOrReligiousUsage": False,
+        "allowAntisocialOrHateUsage": False,
+    }
     if license not in LICENSES or license == "VPL-1.0":
         meta.update(_CLOSED)
     gltf.extensionsUsed = ["VRMC_vrm"]
-    gltf.extensions = {"VRMC_vrm": {
-        "specVersion": "1.0",
-        "meta": meta,
-        "humanoid": {"humanBones": {bone: {"node": index[bone]} for bone in _BONES}},
-        "expressions": {"preset": preset, "custom": custom},
-        "lookAt": {"type": "expression", "offsetFromHeadBone": [0.0, 0.6 * unit, 0.0]},
-    }}
+    gltf.extensions = {
+        "VRMC_vrm": {
+            "specVersion": "1.0",
+            "meta": meta,
+            "humanoid": {"humanBones": {bone: {"node": index[bone]} for bone in _BONES}},
+            "expressions": {"preset": preset, "custom": custom},
+            "lookAt": {"type": "expression", "offsetFromHeadBone": [0.0, 0.6 * unit, 0.0]},
+        }
+    }
     path = Path(path)
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

@@ -31,25 +31,42 @@ def default_checkpoint_dir() -> Path:
     return Path(root) / "shap-e"
 
 
-def generate(prompt: str, backend: str = "procedural", seed: int = 0, checkpoint: Path | None = None,
-             command: str | None = None, mesh_path: Path | None = None, steps: int = 64,
-             device: str | None = None, facing: str = "auto", grid_size: int = 128,
-             command_timeout: float | None = None) -> GenerationResult:
+def generate(
+    prompt: str,
+    backend: str = "procedural",
+    seed: int = 0,
+    checkpoint: Path | None = None,
+    command: str | None = None,
+    mesh_path: Path | None = None,
+    steps: int = 64,
+    device: str | None = None,
+    facing: str = "auto",
+    grid_size: int = 128,
+    command_timeout: float | None = None,
+) -> GenerationResult:
     """Run one backend; UserError for unknown backends or missing arguments."""
     if backend not in BACKENDS:
         raise UserError(f"unknown --backend {backend!r}; use one of {', '.join(BACKENDS)}")
     if backend == "procedural":
         if not prompt.strip():
-            raise UserError("the prompt is empty; describe the character, e.g. \"a cartoon fox with big ears\"")
+            raise UserError('the prompt is empty; describe the character, e.g. "a cartoon fox with big ears"')
         return generate_procedural(prompt, seed)
     if backend == "diffusers":
-        return generate_shap_e(prompt, checkpoint or default_checkpoint_dir(), seed, steps=steps, device=device,
-                               grid_size=grid_size)
+        return generate_shap_e(
+            prompt, checkpoint or default_checkpoint_dir(), seed, steps=steps, device=device, grid_size=grid_size
+        )
     if backend == "command":
         if not command:
-            raise UserError("--backend command needs --command, e.g. --command \"python run_trellis.py --prompt {prompt} --out {out}\"")
-        return generate_with_command(prompt, command, seed, facing=facing,
-                                     timeout=COMMAND_TIMEOUT_S if command_timeout is None else command_timeout)
+            raise UserError(
+                '--backend command needs --command, e.g. --command "python run_trellis.py --prompt {prompt} --out {out}"'
+            )
+        return generate_with_command(
+            prompt,
+            command,
+            seed,
+            facing=facing,
+            timeout=COMMAND_TIMEOUT_S if command_timeout is None else command_timeout,
+        )
     if mesh_path is None:
         raise UserError("--backend file needs --mesh PATH")
     return generate_from_file(mesh_path, prompt, facing=facing)
@@ -63,9 +80,11 @@ def load_shap_e(checkpoint: Path, device: str | None = None):
     checkpoint = Path(checkpoint)
     if not (checkpoint / "model_index.json").is_file():
         raise MissingCheckpointError(
-            f"Shap-E text-to-3D weights ({SHAP_E_REPO})", str(checkpoint),
+            f"Shap-E text-to-3D weights ({SHAP_E_REPO})",
+            str(checkpoint),
             f"download them where there is internet (`huggingface-cli download {SHAP_E_REPO} --local-dir shap-e`), "
-            f"copy the folder to {checkpoint} or pass --checkpoint FOLDER")
+            f"copy the folder to {checkpoint} or pass --checkpoint FOLDER",
+        )
     try:
         import torch
         from diffusers import ShapEPipeline
@@ -81,8 +100,16 @@ def load_shap_e(checkpoint: Path, device: str | None = None):
     return pipe.to(device)
 
 
-def generate_shap_e(prompt: str, checkpoint: Path, seed: int = 0, steps: int = 64, guidance_scale: float = 15.0,
-                    device: str | None = None, pipe=None, grid_size: int = 128) -> GenerationResult:
+def generate_shap_e(
+    prompt: str,
+    checkpoint: Path,
+    seed: int = 0,
+    steps: int = 64,
+    guidance_scale: float = 15.0,
+    device: str | None = None,
+    pipe=None,
+    grid_size: int = 128,
+) -> GenerationResult:
     """Text -> mesh with Shap-E; colours from its per-vertex RGB channels.
 
     Same as ``pipe(prompt, output_type="mesh")`` (the prior's latents decoded by the pipeline's
@@ -96,16 +123,34 @@ def generate_shap_e(prompt: str, checkpoint: Path, seed: int = 0, steps: int = 6
     dev = pipe.device
     generator = torch.Generator(device="cpu").manual_seed(int(seed))
     with torch.no_grad():
-        latents = pipe(prompt, num_inference_steps=int(steps), guidance_scale=guidance_scale, generator=generator,
-                       output_type="latent").images  # [1, num_embeddings, embedding_dim]
+        latents = pipe(
+            prompt,
+            num_inference_steps=int(steps),
+            guidance_scale=guidance_scale,
+            generator=generator,
+            output_type="latent",
+        ).images  # [1, num_embeddings, embedding_dim]
         try:
             decoded = pipe.shap_e_renderer.decode_to_mesh(latents[0][None], dev, grid_size=int(grid_size))
         except (ValueError, RuntimeError) as exc:  # marching cubes found no surface
-            raise UserError(f"Shap-E produced no surface ({str(exc).splitlines()[0]}); try another seed or prompt") from None
+            raise UserError(
+                f"Shap-E produced no surface ({str(exc).splitlines()[0]}); try another seed or prompt"
+            ) from None
     mesh = shap_e_to_mesh(decoded)
-    info = {"backend": "diffusers", "model": "ShapEPipeline", "checkpoint": str(checkpoint), "prompt": prompt,
-            "seed": int(seed), "steps": int(steps), "guidance_scale": guidance_scale, "grid_size": int(grid_size), "device": str(dev),
-            "vertices": mesh.num_vertices, "faces": int(len(mesh.faces)), "seconds": round(time.perf_counter() - start, 3)}
+    info = {
+        "backend": "diffusers",
+        "model": "ShapEPipeline",
+        "checkpoint": str(checkpoint),
+        "prompt": prompt,
+        "seed": int(seed),
+        "steps": int(steps),
+        "guidance_scale": guidance_scale,
+        "grid_size": int(grid_size),
+        "device": str(dev),
+        "vertices": mesh.num_vertices,
+        "faces": int(len(mesh.faces)),
+        "seconds": round(time.perf_counter() - start, 3),
+    }
     return GenerationResult(mesh, info, [])
 
 
@@ -155,17 +200,23 @@ def command_argv(template: str, prompt: str, out: Path, seed: int) -> list[str]:
         try:
             fields = [f for f in string.Formatter().parse(arg) if f[1] is not None]
         except ValueError as exc:
-            raise UserError(f"--command template: malformed placeholder in {arg!r} ({exc}); use {{prompt}} {{out}} {{seed}}") from None
+            raise UserError(
+                f"--command template: malformed placeholder in {arg!r} ({exc}); use {{prompt}} {{out}} {{seed}}"
+            ) from None
         for _, name, spec, conv in fields:
             if name not in _PLACEHOLDERS or spec or conv:
                 bad = "{" + name + (f"!{conv}" if conv else "") + (f":{spec}" if spec else "") + "}"
-                raise UserError(f"--command template: unknown placeholder {bad}; use {{prompt}} {{out}} {{seed}} as they are")
+                raise UserError(
+                    f"--command template: unknown placeholder {bad}; use {{prompt}} {{out}} {{seed}} as they are"
+                )
         if i == 0 and fields:
             raise UserError("--command template: the program name cannot be a placeholder")
         if any(name == "prompt" for _, name, _, _ in fields) and _runs_shell_script(args, i):
-            raise UserError("--command template passes {prompt} into a shell script or inline code (-c/-e), which would "
-                            "run what the prompt contains; pass it as its own argument, or read \"$T2BS_PROMPT\" "
-                            "in the script")
+            raise UserError(
+                "--command template passes {prompt} into a shell script or inline code (-c/-e), which would "
+                'run what the prompt contains; pass it as its own argument, or read "$T2BS_PROMPT" '
+                "in the script"
+            )
         argv.append(arg.format(**values))  # also turns {{ }} into literal braces
     return argv
 
@@ -182,7 +233,9 @@ def _runs_shell_script(args: list[str], i: int) -> bool:
                 flag = args[k]
                 if not flag.startswith("-"):
                     return False  # a script file: the prompt is one of its arguments
-                if flag in ("--eval", "--print", "--command") or (not flag.startswith("--") and set(flag[1:]) & set("cep")):
+                if flag in ("--eval", "--print", "--command") or (
+                    not flag.startswith("--") and set(flag[1:]) & set("cep")
+                ):
                     return i == k + 1  # the argument after -c / -e is code
             return False
     return False
@@ -193,8 +246,9 @@ def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) ->
     import signal
 
     try:
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                                start_new_session=True)  # own group: a timeout kills what it started too
+        proc = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
+        )  # own group: a timeout kills what it started too
     except (FileNotFoundError, PermissionError, OSError) as exc:
         raise UserError(f"--command cannot start {argv[0]!r}: {exc.strerror or exc}") from None
     try:
@@ -203,8 +257,9 @@ def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) ->
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate()
-        raise UserError(f"--command did not finish within {timeout:g} s (raise it with --command-timeout): "
-                        f"{shlex.join(argv)}") from None
+        raise UserError(
+            f"--command did not finish within {timeout:g} s (raise it with --command-timeout): " f"{shlex.join(argv)}"
+        ) from None
     except BaseException:  # Ctrl-C: do not leave the generator running
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
@@ -212,8 +267,9 @@ def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) ->
     return subprocess.CompletedProcess(argv, proc.returncode, stdout, stderr)
 
 
-def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: float | None = COMMAND_TIMEOUT_S,
-                          facing: str = "auto") -> GenerationResult:
+def generate_with_command(
+    prompt: str, template: str, seed: int = 0, timeout: float | None = COMMAND_TIMEOUT_S, facing: str = "auto"
+) -> GenerationResult:
     """Run a user command template (placeholders {prompt} {out} {seed}) that writes a mesh into {out}.
 
     {out} is an empty folder; the command may write any mesh file there (glb/gltf/vrm/obj/ply).
@@ -235,13 +291,22 @@ def generate_with_command(prompt: str, template: str, seed: int = 0, timeout: fl
         if proc.returncode != 0:
             tail = (proc.stderr.strip() or proc.stdout.strip() or "no output").splitlines()[-1]
             raise UserError(f"--command failed with exit code {proc.returncode}: {tail}")
-        found = sorted((p for p in out.rglob("*") if p.suffix.lower() in MESH_SUFFIXES),
-                       key=lambda p: (MESH_SUFFIXES.index(p.suffix.lower()), str(p)))
+        found = sorted(
+            (p for p in out.rglob("*") if p.suffix.lower() in MESH_SUFFIXES),
+            key=lambda p: (MESH_SUFFIXES.index(p.suffix.lower()), str(p)),
+        )
         if not found:
             raise UserError(f"--command finished but wrote no mesh ({', '.join(MESH_SUFFIXES)}) into {{out}}: {line}")
         result = generate_from_file(found[0], prompt, facing=facing)
-    result.info.update({"backend": "command", "command": template, "seed": int(seed), "output_file": found[0].name,
-                        "seconds": round(time.perf_counter() - start, 3)})
+    result.info.update(
+        {
+            "backend": "command",
+            "command": template,
+            "seed": int(seed),
+            "output_file": found[0].name,
+            "seconds": round(time.perf_counter() - start, 3),
+        }
+    )
     return result
 
 
@@ -260,6 +325,14 @@ def generate_from_file(path: Path, prompt: str = "", facing: str = "auto") -> Ge
     if facing == "auto":
         facing = "-z" if path.suffix.lower() == ".vrm" else detect_facing(mesh)
     mesh, transform = normalize(mesh, facing)
-    info = {"backend": "file", "source": str(path), "prompt": prompt, "facing": facing, "transform": transform,
-            "vertices": mesh.num_vertices, "faces": int(len(mesh.faces)), "seconds": round(time.perf_counter() - start, 3)}
+    info = {
+        "backend": "file",
+        "source": str(path),
+        "prompt": prompt,
+        "facing": facing,
+        "transform": transform,
+        "vertices": mesh.num_vertices,
+        "faces": int(len(mesh.faces)),
+        "seconds": round(time.perf_counter() - start, 3),
+    }
     return GenerationResult(mesh, info, [])

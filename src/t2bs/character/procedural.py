@@ -19,8 +19,15 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from t2bs.character.archetypes import CharacterParams
-from t2bs.character.primitives import (icosphere, orient_outward, rotate_about, smoothstep, surface_along, tube,
-                                       uv_sphere)
+from t2bs.character.primitives import (
+    icosphere,
+    orient_outward,
+    rotate_about,
+    smoothstep,
+    surface_along,
+    tube,
+    uv_sphere,
+)
 from t2bs.character.prompt import parse_prompt, prompt_seed
 from t2bs.geometry.mesh import Mesh, merge_meshes, normalize
 
@@ -60,6 +67,7 @@ class _Part:
 @dataclass
 class _Face:
     """Landmarks of the built head that later parts attach to."""
+
     y_mouth: float  # mouth line (palate) height
     z_mouth: float  # front of the upper lip
     z_hinge: float  # jaw hinge z (the jaw spans z_hinge .. z_mouth)
@@ -119,7 +127,7 @@ def _build_head(p: CharacterParams, rng: np.random.Generator) -> tuple[_Part, _F
         w = smoothstep(np.cos(np.radians(p.snout_angle)), 1.0, c)
         along = q @ a
         lateral = q - along[:, None] * a
-        q = (along + p.snout_length * w ** 0.8)[:, None] * a + lateral * (1 - p.snout_taper * w)[:, None]
+        q = (along + p.snout_length * w**0.8)[:, None] * a + lateral * (1 - p.snout_taper * w)[:, None]
     rx, ry, rz = p.head_radii
     if snouted:
         front = q[:, 2].max()
@@ -227,18 +235,18 @@ def _lip_morphs(part: _Part, face: _Face, mw: float, sign: float) -> None:
     v = part.vertices
     corner = smoothstep(0.25 * mw, 1.0 * mw, np.abs(v[:, 0]))  # 0 at the middle, 1 at the corners
     side = np.sign(v[:, 0])
-    smile = np.stack([side * 0.05 * corner, 0.1 * corner ** 1.5, -0.04 * corner], 1)
+    smile = np.stack([side * 0.05 * corner, 0.1 * corner**1.5, -0.04 * corner], 1)
     # The middle of the lower lip drops a little in a smile (an open, happy curve).
     if sign < 0:
         smile[:, 1] += -0.02 * (1 - corner)
     part.morphs["smile"] = smile
-    part.morphs["frown"] = np.stack([-side * 0.015 * corner, -0.09 * corner ** 1.5, 0.0 * corner], 1)
+    part.morphs["frown"] = np.stack([-side * 0.015 * corner, -0.09 * corner**1.5, 0.0 * corner], 1)
 
 
 def _cheek_field(points: np.ndarray, face: _Face, radius: float) -> np.ndarray:
     """[N] smooth weight around the mouth corners (0 far away)."""
     d = np.min(np.linalg.norm(points[:, None, :] - face.corners[None], axis=2), axis=1)
-    return np.exp(-(d / radius) ** 2) * (d < 2.5 * radius)
+    return np.exp(-((d / radius) ** 2)) * (d < 2.5 * radius)
 
 
 def _face_morphs(p: CharacterParams, face: _Face, head: _Part, jaw: _Part) -> None:
@@ -254,7 +262,7 @@ def _face_morphs(p: CharacterParams, face: _Face, head: _Part, jaw: _Part) -> No
         cheek_c = face.corners + np.array([[0.12, 0.06, -0.12], [-0.12, 0.06, -0.12]])
         d = np.min(np.linalg.norm(v[:, None, :] - cheek_c[None], axis=2), axis=1)
         cr = 0.2 + 0.2 * p.mouth_width
-        wc = np.exp(-(d / cr) ** 2) * (d < 2.5 * cr)
+        wc = np.exp(-((d / cr) ** 2)) * (d < 2.5 * cr)
         normals = Mesh(v.astype(np.float32), part.faces).vertex_normals().astype(np.float64)
         part.morphs["cheek_puff"] = normals * (0.09 * wc)[:, None]
 
@@ -339,8 +347,12 @@ def _build_eyes(p: CharacterParams, face: _Face, head: _Part) -> list[_Part]:
         colors = _eyeball_colors(p, v @ f, v @ up, v @ side)
         v = centre + v * r
         eye = _Part(f"eye_{suffix}", v, faces, colors)
-        for name, axis, angle in (("look_left", up, LOOK_ANGLE), ("look_right", up, -LOOK_ANGLE),
-                                  ("look_up", side, -LOOK_ANGLE), ("look_down", side, LOOK_ANGLE)):
+        for name, axis, angle in (
+            ("look_left", up, LOOK_ANGLE),
+            ("look_right", up, -LOOK_ANGLE),
+            ("look_up", side, -LOOK_ANGLE),
+            ("look_down", side, LOOK_ANGLE),
+        ):
             eye.morphs[name] = rotate_about(v, centre, axis, angle) - v
         parts.append(eye)
         parts.append(_eyelid(p, centre, r, f, up, side, suffix, lid_rgb))
@@ -372,7 +384,9 @@ def _eyeball_colors(p: CharacterParams, cf: np.ndarray, cu: np.ndarray, cs: np.n
         w_pupil = smoothstep(15, 12, ang)
     out = _mix(out, (0.03, 0.03, 0.04), w_pupil)
     # Highlight up and toward the character's right (the viewer's left).
-    hl = np.degrees(np.arccos(np.clip(cf * np.cos(np.radians(17)) + (cu * 0.8 - cs * 0.6) * np.sin(np.radians(17)), -1, 1)))
+    hl = np.degrees(
+        np.arccos(np.clip(cf * np.cos(np.radians(17)) + (cu * 0.8 - cs * 0.6) * np.sin(np.radians(17)), -1, 1))
+    )
     return _mix(out, (1.0, 1.0, 1.0), smoothstep(7, 4.5, hl))
 
 
@@ -396,7 +410,7 @@ def _eyelid(p, centre, r, f, up, side, suffix, rgb) -> _Part:
     # meet slightly below the middle; the skin behind them stretches smoothly.
     alpha = np.clip(a / rho, -1, 1)
     e = np.arctan2(b, c)  # angle in the up-forward plane
-    e_top = np.arctan2(np.sqrt(np.clip(np.sin(aperture) ** 2 - alpha ** 2, 0, None)), np.cos(aperture))
+    e_top = np.arctan2(np.sqrt(np.clip(np.sin(aperture) ** 2 - alpha**2, 0, None)), np.cos(aperture))
     e_meet = -0.15 * e_top
     span = 1.8
     upper = e >= e_meet
@@ -404,7 +418,7 @@ def _eyelid(p, centre, r, f, up, side, suffix, rgb) -> _Part:
     g_lo = 1 - smoothstep(e_top, e_top + span, -e)
     shift = np.where(upper, -(e_top - e_meet) * g_up, (e_top + e_meet) * g_lo)
     ang = e + shift
-    rr = np.sqrt(b ** 2 + c ** 2)
+    rr = np.sqrt(b**2 + c**2)
     # Slight bulge of the closed lid keeps it outside the eyeball halfway through a blink.
     bulge = 1 + 0.12 * np.where(upper, g_up, g_lo) * (e_top / np.sin(aperture))
     nb, nc = rr * np.sin(ang) * bulge, rr * np.cos(ang) * bulge
@@ -477,7 +491,9 @@ def _ear_shape(kind: str, width: float, height: float) -> tuple[np.ndarray, np.n
     cup = -0.22 * width * (1 - np.clip((2 * x / width) ** 2, 0, 1)) * np.sin(np.pi * np.clip(t, 0, 1))
     y = t * height
     verts = np.stack([x, y, z + cup], 1)
-    inner = (v[:, 2] > 0.1) * smoothstep(0.9, 0.5, np.abs(v[:, 0])) * smoothstep(0.95, 0.7, t) * smoothstep(0.02, 0.12, t)
+    inner = (
+        (v[:, 2] > 0.1) * smoothstep(0.9, 0.5, np.abs(v[:, 0])) * smoothstep(0.95, 0.7, t) * smoothstep(0.02, 0.12, t)
+    )
     return verts, f, inner
 
 
@@ -538,7 +554,7 @@ def _antenna(p, base, axis, label, side_sign) -> _Part:
     h = p.ear_size
     t = np.linspace(0, 1, 9)[:, None]
     bend = np.array([side_sign * 0.25, 0.0, 0.15]) * h
-    path = base + axis * (t * h) + bend * t ** 2
+    path = base + axis * (t * h) + bend * t**2
     v1, f1 = tube(path, np.linspace(0.035, 0.022, len(path)), 10)
     v2, f2 = _ellipsoid(path[-1], (0.08, 0.08, 0.08), 2)
     v = np.concatenate([v1, v2])
@@ -562,25 +578,39 @@ def _build_horns(p: CharacterParams, face: _Face, head: _Part) -> list[_Part]:
             out = np.array([side_sign, 0.0, 0.0])
             t = np.linspace(0, 1, 12)[:, None]
             if p.horn == "antlers":
-                path = base + s * (out * (0.45 * t + 0.2 * t ** 2) + np.array([0, 1.0, 0]) * (0.9 * t - 0.15 * t ** 2)
-                                   + np.array([0, 0, -1.0]) * (0.25 * t - 0.35 * t ** 2))
+                path = base + s * (
+                    out * (0.45 * t + 0.2 * t**2)
+                    + np.array([0, 1.0, 0]) * (0.9 * t - 0.15 * t**2)
+                    + np.array([0, 0, -1.0]) * (0.25 * t - 0.35 * t**2)
+                )
                 comps.append(tube(path, np.linspace(0.075, 0.025, len(path)) * (0.6 + 0.4 * s), 10))
-                for k, (at, direction) in enumerate(((0.35, (0.1, 0.6, 0.8)), (0.65, (0.35, 0.8, 0.35)), (0.9, (0.6, 0.6, -0.3)))):
+                for k, (at, direction) in enumerate(
+                    ((0.35, (0.1, 0.6, 0.8)), (0.65, (0.35, 0.8, 0.35)), (0.9, (0.6, 0.6, -0.3)))
+                ):
                     start = path[int(at * (len(path) - 1))]
                     dvec = np.array([direction[0] * side_sign, direction[1], direction[2]])
                     tt = np.linspace(0, 1, 6)[:, None]
-                    tine = start + s * 0.38 * (tt * dvec + tt ** 2 * np.array([0, 0.3, 0]))
+                    tine = start + s * 0.38 * (tt * dvec + tt**2 * np.array([0, 0.3, 0]))
                     comps.append(tube(tine, np.linspace(0.045, 0.012, 6) * (0.6 + 0.4 * s), 8))
             else:
-                path = base + s * (out * (0.35 * t + 0.15 * t ** 2) + np.array([0, 1.0, 0]) * (0.55 * t)
-                                   + np.array([0, 0, -1.0]) * (0.15 * t + 0.3 * t ** 3))
+                path = base + s * (
+                    out * (0.35 * t + 0.15 * t**2)
+                    + np.array([0, 1.0, 0]) * (0.55 * t)
+                    + np.array([0, 0, -1.0]) * (0.15 * t + 0.3 * t**3)
+                )
                 comps.append(tube(path, np.linspace(0.13, 0.005, len(path)) * (0.6 + 0.4 * s), 14))
     elif p.horn == "spikes":
         for el in np.linspace(62, 150, 6):  # along the midline, from the forehead over the top to the back
             d = np.array([0.0, np.sin(np.radians(el)), np.cos(np.radians(el))])
             base = surface_along(head.vertices, np.zeros(3), d)
             n = base / np.linalg.norm(base)
-            path = np.stack([base - n * 0.06, base + n * s * 0.2 - np.array([0, 0, 0.05]), base + n * s * 0.42 - np.array([0, 0, 0.12])])
+            path = np.stack(
+                [
+                    base - n * 0.06,
+                    base + n * s * 0.2 - np.array([0, 0, 0.05]),
+                    base + n * s * 0.42 - np.array([0, 0, 0.12]),
+                ]
+            )
             comps.append(tube(path, np.array([0.1, 0.06, 0.004]) * (0.7 + 0.3 * s), 10))
     elif p.horn == "antenna":
         base = surface_along(head.vertices, np.zeros(3), np.array([0.0, 1.0, 0.0]))
@@ -590,7 +620,7 @@ def _build_horns(p: CharacterParams, face: _Face, head: _Part) -> list[_Part]:
         label = "antenna"
     part = _merge_comps(label, comps, rgb if label == "horn" else _shade(p.base_color, 0.8))
     if label == "antenna":
-        part.colors[-len(comps[-1][0]):] = p.extra_color  # the knob on top
+        part.colors[-len(comps[-1][0]) :] = p.extra_color  # the knob on top
     return [part]
 
 
@@ -601,7 +631,7 @@ def _build_extras(p: CharacterParams, face: _Face, head: _Part, rng: np.random.G
         t = (v[:, 1] + 1) / 2
         base = surface_along(head.vertices, np.zeros(3), np.array([0.0, 1.0, -0.25]))
         wf = (1 - t) ** 1.1 + 0.02
-        verts = np.stack([v[:, 0] * 0.07 * wf, t * 0.65, v[:, 2] * 0.45 * wf - 0.45 * t ** 1.5], 1) + base - [0, 0.1, 0]
+        verts = np.stack([v[:, 0] * 0.07 * wf, t * 0.65, v[:, 2] * 0.45 * wf - 0.45 * t**1.5], 1) + base - [0, 0.1, 0]
         parts.append(_Part("fin", verts, orient_outward(verts, f), _colors(len(verts), p.extra_color)))
     if "tears" in p.extras and face.eyes:
         comps = []
@@ -627,7 +657,7 @@ def _build_extras(p: CharacterParams, face: _Face, head: _Part, rng: np.random.G
             length = 0.42
             local = v * np.array([length, 0.2, 0.06])
             local[:, 1] *= 1 - 0.5 * np.clip(v[:, 0], 0, 1) ** 2
-            pos = (radial * (radius + length * 0.55) + np.array([0, 0, -0.25 + 0.1 * np.cos(ang)]))
+            pos = radial * (radius + length * 0.55) + np.array([0, 0, -0.25 + 0.1 * np.cos(ang)])
             verts = pos + local[:, :1] * radial + local[:, 1:2] * tang + local[:, 2:3] * np.array([0, 0, 1.0])
             verts[:, 2] += 0.12 * (local[:, 0] / length) ** 2
             comps.append((verts, orient_outward(verts, f)))
@@ -666,7 +696,8 @@ def _paint_skin(p: CharacterParams, face: _Face, head: _Part, jaw: _Part, rng: n
         if p.secondary == "muzzle":
             if face.snouted:
                 w = smoothstep(face.z_hinge + 0.05, face.z_hinge + 0.35, v[:, 2]) * smoothstep(
-                    y_m + 0.35, y_m + 0.12, v[:, 1])
+                    y_m + 0.35, y_m + 0.12, v[:, 1]
+                )
             else:
                 d = np.linalg.norm((v - [0, y_m, face.z_mouth]) * [1.0, 1.3, 0.6], axis=1)
                 w = smoothstep(0.5, 0.35, d)
@@ -677,7 +708,9 @@ def _paint_skin(p: CharacterParams, face: _Face, head: _Part, jaw: _Part, rng: n
             w = smoothstep(y_m + 0.12, y_m - 0.05, v[:, 1]) if part.label == "head" else np.ones(len(v))
             c = _mix(c, p.secondary_color, w)
         elif p.secondary == "blaze":
-            w_m = smoothstep(face.z_hinge + 0.05, face.z_hinge + 0.3, v[:, 2]) * smoothstep(y_m + 0.35, y_m + 0.15, v[:, 1])
+            w_m = smoothstep(face.z_hinge + 0.05, face.z_hinge + 0.3, v[:, 2]) * smoothstep(
+                y_m + 0.35, y_m + 0.15, v[:, 1]
+            )
             w_b = smoothstep(0.16, 0.1, np.abs(v[:, 0])) * (v[:, 2] > 0) * smoothstep(0.0, 0.3, v[:, 2])
             w = np.maximum(w_m, w_b) if part.label == "head" else np.ones(len(v))
             c = _mix(c, p.secondary_color, w)
@@ -689,7 +722,11 @@ def _paint_skin(p: CharacterParams, face: _Face, head: _Part, jaw: _Part, rng: n
             away = _away_from_face(v, face)
             if p.pattern == "stripes":
                 az = np.arctan2(v[:, 0], -v[:, 2])
-                w = smoothstep(0.55, 0.75, np.sin(az * 9 + v[:, 1] * 2)) * smoothstep(0.0, 0.3, v[:, 1] - y_m - 0.3) * away
+                w = (
+                    smoothstep(0.55, 0.75, np.sin(az * 9 + v[:, 1] * 2))
+                    * smoothstep(0.0, 0.3, v[:, 1] - y_m - 0.3)
+                    * away
+                )
                 c = _mix(c, p.pattern_color, w)
             elif p.pattern == "spots":
                 dirs = rng.normal(size=(22, 3))
@@ -705,14 +742,18 @@ def _paint_skin(p: CharacterParams, face: _Face, head: _Part, jaw: _Part, rng: n
                 rivet = np.zeros(len(v))
                 for x in (-0.75, 0.75):
                     for y in (0.55, -0.1):
-                        rivet = np.maximum(rivet, smoothstep(0.05, 0.03, np.linalg.norm(v[:, :2] - [x * p.head_radii[0], y], axis=1)))
+                        rivet = np.maximum(
+                            rivet, smoothstep(0.05, 0.03, np.linalg.norm(v[:, :2] - [x * p.head_radii[0], y], axis=1))
+                        )
                 c = _mix(c, _shade(p.base_color, 0.6), rivet * (v[:, 2] > 0))
             elif p.pattern == "top":
                 c = _mix(c, p.pattern_color, smoothstep(0.2, 0.6, v[:, 1]) * away)
             if "gills" in p.extras:
                 for k in range(3):
                     zc = face.z_hinge - 0.2 - 0.14 * k
-                    w = smoothstep(0.025, 0.01, np.abs(v[:, 2] - zc)) * smoothstep(0.25, 0.1, np.abs(v[:, 1] - y_m - 0.05))
+                    w = smoothstep(0.025, 0.01, np.abs(v[:, 2] - zc)) * smoothstep(
+                        0.25, 0.1, np.abs(v[:, 1] - y_m - 0.05)
+                    )
                     c = _mix(c, _shade(p.base_color, 0.55), w)
             if "blush" in p.extras and face.eyes:
                 for centre, r, _ in face.eyes:
@@ -754,9 +795,12 @@ def build_character(p: CharacterParams, rng: np.random.Generator) -> Mesh:
     controls = [c for c in RIG_CONTROLS if any(c in part.morphs for part in parts)]
     named = []
     for part in parts:
-        m = Mesh(part.vertices.astype(np.float32), part.faces.astype(np.int32),
-                 np.clip(part.colors, 0, 1).astype(np.float32),
-                 morph_targets={c: part.morphs.get(c, np.zeros_like(part.vertices)).astype(np.float32) for c in controls})
+        m = Mesh(
+            part.vertices.astype(np.float32),
+            part.faces.astype(np.int32),
+            np.clip(part.colors, 0, 1).astype(np.float32),
+            morph_targets={c: part.morphs.get(c, np.zeros_like(part.vertices)).astype(np.float32) for c in controls},
+        )
         named.append((part.label, m))
     mesh = merge_meshes(named)
     mesh, _ = normalize(mesh, facing="+z")

@@ -17,15 +17,33 @@ import numpy as np
 from t2bs.character.archetypes import ARCHETYPE_WORDS, CharacterParams, archetype_params
 
 COLORS: dict[str, tuple[float, float, float]] = {
-    "red": (0.85, 0.15, 0.12), "orange": (0.93, 0.47, 0.15), "yellow": (0.98, 0.85, 0.2),
-    "gold": (0.9, 0.72, 0.2), "golden": (0.9, 0.72, 0.2), "green": (0.3, 0.7, 0.28),
-    "lime": (0.6, 0.9, 0.25), "teal": (0.15, 0.6, 0.6), "cyan": (0.25, 0.8, 0.9),
-    "blue": (0.22, 0.42, 0.9), "navy": (0.12, 0.18, 0.45), "purple": (0.55, 0.3, 0.75),
-    "violet": (0.6, 0.35, 0.85), "pink": (0.98, 0.6, 0.75), "magenta": (0.85, 0.2, 0.65),
-    "brown": (0.5, 0.32, 0.18), "tan": (0.82, 0.68, 0.5), "beige": (0.9, 0.82, 0.68),
-    "black": (0.12, 0.12, 0.13), "white": (0.96, 0.96, 0.95), "grey": (0.55, 0.56, 0.58),
-    "gray": (0.55, 0.56, 0.58), "silver": (0.75, 0.77, 0.8), "metal": (0.68, 0.7, 0.74),
-    "metallic": (0.68, 0.7, 0.74), "ginger": (0.9, 0.5, 0.2), "cream": (0.97, 0.93, 0.8),
+    "red": (0.85, 0.15, 0.12),
+    "orange": (0.93, 0.47, 0.15),
+    "yellow": (0.98, 0.85, 0.2),
+    "gold": (0.9, 0.72, 0.2),
+    "golden": (0.9, 0.72, 0.2),
+    "green": (0.3, 0.7, 0.28),
+    "lime": (0.6, 0.9, 0.25),
+    "teal": (0.15, 0.6, 0.6),
+    "cyan": (0.25, 0.8, 0.9),
+    "blue": (0.22, 0.42, 0.9),
+    "navy": (0.12, 0.18, 0.45),
+    "purple": (0.55, 0.3, 0.75),
+    "violet": (0.6, 0.35, 0.85),
+    "pink": (0.98, 0.6, 0.75),
+    "magenta": (0.85, 0.2, 0.65),
+    "brown": (0.5, 0.32, 0.18),
+    "tan": (0.82, 0.68, 0.5),
+    "beige": (0.9, 0.82, 0.68),
+    "black": (0.12, 0.12, 0.13),
+    "white": (0.96, 0.96, 0.95),
+    "grey": (0.55, 0.56, 0.58),
+    "gray": (0.55, 0.56, 0.58),
+    "silver": (0.75, 0.77, 0.8),
+    "metal": (0.68, 0.7, 0.74),
+    "metallic": (0.68, 0.7, 0.74),
+    "ginger": (0.9, 0.5, 0.2),
+    "cream": (0.97, 0.93, 0.8),
 }
 
 # Filler words that carry no shape information (never reported as unknown).
@@ -40,31 +58,63 @@ STOPWORDS = set(
 SIZE_UP = {"big", "large", "huge", "giant", "enormous", "long", "tall", "wide", "oversized"}
 SIZE_DOWN = {"small", "tiny", "little", "short", "mini", "narrow"}
 PARTS = {
-    "ears": "ear", "ear": "ear", "eyes": "eye", "eye": "eye", "snout": "snout", "nose": "snout",
-    "muzzle": "snout", "beak": "snout", "mouth": "mouth", "jaw": "jaw", "teeth": "teeth",
-    "horns": "horns", "horn": "horns", "antlers": "antlers", "antler": "antlers",
+    "ears": "ear",
+    "ear": "ear",
+    "eyes": "eye",
+    "eye": "eye",
+    "snout": "snout",
+    "nose": "snout",
+    "muzzle": "snout",
+    "beak": "snout",
+    "mouth": "mouth",
+    "jaw": "jaw",
+    "teeth": "teeth",
+    "horns": "horns",
+    "horn": "horns",
+    "antlers": "antlers",
+    "antler": "antlers",
 }
 # Attribute words: word -> parameter changes (callables get the current params).
 ATTRIBUTES: dict[str, object] = {
-    "horned": {"horn": "horns"}, "antlered": {"horn": "antlers"},
-    "spiky": {"horn": "spikes"}, "spiked": {"horn": "spikes"}, "spikes": {"horn": "spikes"},
-    "round": lambda p: {"head_radii": (p.head_radii[0] * 1.12, p.head_radii[1] * 1.05, p.head_radii[2] * 1.05),
-                        "snout_length": p.snout_length * 0.6, "squareness": 2.0},
+    "horned": {"horn": "horns"},
+    "antlered": {"horn": "antlers"},
+    "spiky": {"horn": "spikes"},
+    "spiked": {"horn": "spikes"},
+    "spikes": {"horn": "spikes"},
+    "round": lambda p: {
+        "head_radii": (p.head_radii[0] * 1.12, p.head_radii[1] * 1.05, p.head_radii[2] * 1.05),
+        "snout_length": p.snout_length * 0.6,
+        "squareness": 2.0,
+    },
     "chubby": lambda p: {"head_radii": (p.head_radii[0] * 1.15, p.head_radii[1], p.head_radii[2] * 1.05)},
     "fat": lambda p: {"head_radii": (p.head_radii[0] * 1.15, p.head_radii[1], p.head_radii[2] * 1.05)},
     "thin": lambda p: {"head_radii": (p.head_radii[0] * 0.85, p.head_radii[1] * 1.05, p.head_radii[2])},
     "skinny": lambda p: {"head_radii": (p.head_radii[0] * 0.85, p.head_radii[1] * 1.05, p.head_radii[2])},
-    "boxy": {"squareness": 5.0}, "square": {"squareness": 5.0},
-    "striped": {"pattern": "stripes"}, "stripes": {"pattern": "stripes"}, "stripy": {"pattern": "stripes"},
-    "spotted": {"pattern": "spots"}, "spots": {"pattern": "spots"}, "dotted": {"pattern": "spots"},
+    "boxy": {"squareness": 5.0},
+    "square": {"squareness": 5.0},
+    "striped": {"pattern": "stripes"},
+    "stripes": {"pattern": "stripes"},
+    "stripy": {"pattern": "stripes"},
+    "spotted": {"pattern": "spots"},
+    "spots": {"pattern": "spots"},
+    "dotted": {"pattern": "spots"},
     "crying": lambda p: {"extras": tuple(dict.fromkeys(p.extras + ("tears",)))},
     "tears": lambda p: {"extras": tuple(dict.fromkeys(p.extras + ("tears",)))},
     "sad": lambda p: {"extras": tuple(dict.fromkeys(p.extras + ("tears",)))},
-    "fangs": {"teeth": "fangs"}, "sharp": {"teeth": "sharp"}, "toothy": {"teeth": "sharp"},
-    "floppy": {"ear": "floppy"}, "pointy": lambda p: {"ear": "pointy"} if p.ear != "none" else {},
+    "fangs": {"teeth": "fangs"},
+    "sharp": {"teeth": "sharp"},
+    "toothy": {"teeth": "sharp"},
+    "floppy": {"ear": "floppy"},
+    "pointy": lambda p: {"ear": "pointy"} if p.ear != "none" else {},
     "hairy": lambda p: {"extras": tuple(dict.fromkeys(p.extras + ("hair",)))},
     "blushing": lambda p: {"extras": tuple(dict.fromkeys(p.extras + ("blush",)))},
-    "fluffy": {}, "furry": {}, "happy": {}, "smiling": {}, "angry": {}, "grumpy": {}, "scary": {},
+    "fluffy": {},
+    "furry": {},
+    "happy": {},
+    "smiling": {},
+    "angry": {},
+    "grumpy": {},
+    "scary": {},
     "baby": lambda p: {"eye_size": p.eye_size * 1.2},
 }
 
@@ -106,9 +156,11 @@ def parse_prompt(prompt: str, seed: int = 0, vary: bool = True) -> ParsedPrompt:
     notices = []
     if archetype is None:
         archetype = "cartoon"
-        notices.append("no known character type in the prompt: making a generic cartoon head "
-                       "(known: fox, dog/corgi, cat, deer, bear, rabbit, shark/fish, dinosaur/raptor, "
-                       "bird/owl, frog, robot, alien, bug, plant/flower, human)")
+        notices.append(
+            "no known character type in the prompt: making a generic cartoon head "
+            "(known: fox, dog/corgi, cat, deer, bear, rabbit, shark/fish, dinosaur/raptor, "
+            "bird/owl, frog, robot, alien, bug, plant/flower, human)"
+        )
     params = archetype_params(archetype, **tweaks)
 
     ignored, colors = [], []
@@ -126,10 +178,10 @@ def parse_prompt(prompt: str, seed: int = 0, vary: bool = True) -> ParsedPrompt:
             params = replace(params, **change)
             matched.append(w)
         elif w in PARTS:
-            params = _apply_part(params, PARTS[w], words[max(0, i - 3):i])
+            params = _apply_part(params, PARTS[w], words[max(0, i - 3) : i])
             matched.append(w)
         elif w in SIZE_UP or w in SIZE_DOWN:
-            if not any(p in PARTS for p in words[i + 1:i + 4]):
+            if not any(p in PARTS for p in words[i + 1 : i + 4]):
                 scale = 1.1 if w in SIZE_UP else 0.9
                 params = replace(params, head_radii=tuple(r * scale for r in params.head_radii))
             matched.append(w)
@@ -179,8 +231,14 @@ def _apply_colors(p: CharacterParams, colors: list[tuple[int, str]], words: list
     rest = []
     for i, name in colors:
         rgb = COLORS[name]
-        nxt = next((words[j] for j in range(i + 1, min(i + 3, len(words))) if words[j] in PARTS or words[j] in
-                    ("petals", "petal", "hair", "stripes", "spots")), None)
+        nxt = next(
+            (
+                words[j]
+                for j in range(i + 1, min(i + 3, len(words)))
+                if words[j] in PARTS or words[j] in ("petals", "petal", "hair", "stripes", "spots")
+            ),
+            None,
+        )
         if nxt in ("eyes", "eye"):
             p = replace(p, iris_color=rgb)
         elif nxt in ("petals", "petal"):

@@ -3,24 +3,23 @@ morph targets (or the video animator), against the paper's numbers."""
 
 from __future__ import annotations
 
-import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
-import typer
 
-from t2bs.blendshapes.commands import _grid_gt, load_captures
+from t2bs.blendshapes.stage import _grid_gt, load_captures
 from t2bs.errors import UserError
 
 
 # ---------------------------------------------------------------- benchmark captures
 
 
-def morph_captures(mesh, prompts: int = 20, frames: int = 24, seed: int = 0, head_motion: bool = True,
-                   max_targets: int = 3) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def morph_captures(
+    mesh, prompts: int = 20, frames: int = 24, seed: int = 0, head_motion: bool = True, max_targets: int = 3
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Ground-truth captures from an asset's own morph targets: random sparse weight curves.
 
     Each "prompt" drives 1..max_targets randomly chosen morph targets with smooth bumps (random
@@ -66,7 +65,9 @@ def _rot(yaw: float, pitch: float) -> np.ndarray:
     return ry @ rx
 
 
-def animator_captures(mesh, frames: int = 24, seed: int = 0, expressions=None) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def animator_captures(
+    mesh, frames: int = 24, seed: int = 0, expressions=None
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Ground-truth captures from the video stage's animator: one per expression prompt (sample 0).
 
     ``mesh`` must be in the canonical frame. Returns (video_id -> [T, N, 3], video_id -> prompt),
@@ -104,7 +105,9 @@ def _asset_captures(asset: str, source: str, frames: int, prompts: int, seed: in
             gt = {v: g for v in captures for g in [_grid_gt(path / "videos" / v)[0]] if g is not None}
         return character, captures, expressions, f"project:{used}", gt
     if source == "vcdgs":
-        raise UserError(f"{asset}: --source vcdgs needs a project folder with recon/ (run the pipeline on the asset first)")
+        raise UserError(
+            f"{asset}: --source vcdgs needs a project folder with recon/ (run the pipeline on the asset first)"
+        )
     if asset.startswith("procedural:"):
         from t2bs.character.backends import generate
 
@@ -116,7 +119,9 @@ def _asset_captures(asset: str, source: str, frames: int, prompts: int, seed: in
     try:
         from t2bs.video.prompts import EXPRESSIONS
 
-        captures, expressions = animator_captures(mesh, frames=frames, seed=seed, expressions=list(EXPRESSIONS)[:prompts])
+        captures, expressions = animator_captures(
+            mesh, frames=frames, seed=seed, expressions=list(EXPRESSIONS)[:prompts]
+        )
         return mesh, captures, expressions, "video-animator", None
     except ImportError:  # the video stage is not installed: the asset's own morph targets, random curves
         captures, expressions = morph_captures(mesh, prompts=prompts, frames=frames, seed=seed)
@@ -141,9 +146,18 @@ def _held_out_split(captures: dict[str, np.ndarray], expressions: dict[str, str]
     return train, test
 
 
-def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: dict[str, str], components: int = 100,
-                      held_out: int = 5, seed: int = 0, rgb_steps: int = 10, image_size: int = 256,
-                      renderer=None, ground_truth: dict[str, np.ndarray] | None = None) -> dict:
+def evaluate_held_out(
+    character,
+    captures: dict[str, np.ndarray],
+    expressions: dict[str, str],
+    components: int = 100,
+    held_out: int = 5,
+    seed: int = 0,
+    rgb_steps: int = 10,
+    image_size: int = 256,
+    renderer=None,
+    ground_truth: dict[str, np.ndarray] | None = None,
+) -> dict:
     """Build the model without the held-out prompts, fit their every frame, measure p2p and pixel L2.
 
     p2p: mean over frames of the mean vertex distance divided by the neutral's bounding-box
@@ -163,7 +177,7 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
     from t2bs.geometry.rigid import nonrigid_displacements
 
     def expression(frames: np.ndarray) -> np.ndarray:  # [T, N, 3] without each frame's head motion
-        return (character.vertices.astype(np.float64) + nonrigid_displacements(character.vertices, frames)[0])
+        return character.vertices.astype(np.float64) + nonrigid_displacements(character.vertices, frames)[0]
 
     train, test = _held_out_split(captures, expressions, held_out, seed)
     t0 = time.time()
@@ -174,7 +188,9 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
     colors = character.vertex_rgb()
     t0 = time.time()
     cfg = FitConfig(rgb_steps=rgb_steps)
-    weights = fit_frames(model, colors=colors, faces=character.faces, target_vertices=target, cameras=[camera], config=cfg)
+    weights = fit_frames(
+        model, colors=colors, faces=character.faces, target_vertices=target, cameras=[camera], config=cfg
+    )
     fit_s = time.time() - t0
     fitted = model.vertices(weights)  # [T, N, 3]
     diag = character.bbox_diagonal()
@@ -212,41 +228,76 @@ def evaluate_held_out(character, captures: dict[str, np.ndarray], expressions: d
         extra["p2p_capture_vs_gt"] = float((np.linalg.norm(target - gt, axis=-1).mean(1) / diag).mean())
     return {
         **extra,
-        "components": model.num_components, "p2p": float(p2p.mean()), "pixel_l2": float(np.mean(pix)),
-        "p2p_geometry_only": float(p2p_geo.mean()), "p2p_max_frame": float(p2p.max()),
-        "rank": model.meta["rank"], "explained_variance": float(model.explained_variance.sum()),
-        "train_captures": len(train), "held_out_captures": len(test), "held_out": sorted(test),
-        "held_out_frames": int(len(target)), "renderer": renderer_name, "image_size": image_size,
-        "rgb_steps": rgb_steps, "build_s": round(build_s, 3), "fit_s": round(fit_s, 3),
+        "components": model.num_components,
+        "p2p": float(p2p.mean()),
+        "pixel_l2": float(np.mean(pix)),
+        "p2p_geometry_only": float(p2p_geo.mean()),
+        "p2p_max_frame": float(p2p.max()),
+        "rank": model.meta["rank"],
+        "explained_variance": float(model.explained_variance.sum()),
+        "train_captures": len(train),
+        "held_out_captures": len(test),
+        "held_out": sorted(test),
+        "held_out_frames": int(len(target)),
+        "renderer": renderer_name,
+        "image_size": image_size,
+        "rgb_steps": rgb_steps,
+        "build_s": round(build_s, 3),
+        "fit_s": round(fit_s, 3),
     }
 
 
-def bench_blendshapes_command(
-    asset: str = typer.Option(..., "--asset", help="Mesh with morph targets (.glb), a project folder, or procedural:PROMPT."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the JSON here."),
-    source: str = typer.Option("gt", "--source", help="gt: ground-truth captures; vcdgs: recon/ of a project folder."),
-    components: int = typer.Option(100, "--components", "-k", help="Shapes in the model (paper: 100)."),
-    held_out: int = typer.Option(5, "--held-out", help="Prompts held out of the model (paper: 5)."),
-    prompts: int = typer.Option(20, "--prompts", help="Prompts animated for a mesh asset (paper: 20)."),
-    frames: int = typer.Option(24, "--frames", help="Frames per capture for a mesh asset."),
-    rgb_steps: int = typer.Option(10, "--rgb-steps", help="L-BFGS iterations of the 0.1 L_rgb refinement (0 = geometry only)."),
-    image_size: int = typer.Option(256, "--image-size", help="Side of the frontal renders for pixel L2."),
-    facing: str = typer.Option("+z", "--facing", help="Direction a mesh asset faces (+z, -z, +x, -x)."),
-    seed: int = typer.Option(0, "--seed", help="Random seed (captures and held-out choice)."),
-) -> None:
-    """Held-out expressiveness (paper appendix): mean p2p / bbox diagonal and pixel L2 of fitted held-out captures."""
+@dataclass
+class BenchBlendshapesConfig:
+    asset: str  # mesh with morph targets (.glb), a project folder, or procedural:PROMPT
+    json_out: Path | None = None  # also write the JSON here
+    source: str = "gt"  # gt: ground-truth captures; vcdgs: recon/ of a project folder
+    components: int = 100  # shapes in the model (paper: 100)
+    held_out: int = 5  # prompts held out of the model (paper: 5)
+    prompts: int = 20  # prompts animated for a mesh asset (paper: 20)
+    frames: int = 24  # frames per capture for a mesh asset
+    rgb_steps: int = 10  # L-BFGS iterations of the 0.1 L_rgb refinement (0 = geometry only)
+    image_size: int = 256  # side of the frontal renders for pixel L2, pixels
+    facing: str = "+z"  # direction a mesh asset faces: +z, -z, +x, -x
+    seed: int = 0  # random seed of the captures and of the held-out choice
+
+
+def bench_blendshapes(config: BenchBlendshapesConfig) -> dict:
+    """Held-out expressiveness (paper appendix): mean p2p / bbox diagonal and pixel L2 of fitted held-out captures.
+
+    Reads ``asset``: a project folder (its videos/ captures, or its recon/ with ``source="vcdgs"``), a mesh file
+    whose morph targets make the captures, or a procedural character. Builds the model without the held-out prompts
+    and fits them (``evaluate_held_out``). Writes ``json_out`` if given. Returns
+    ``{"benchmark": "blendshapes", "paper": {...}, "rows": [row]}``. Raises UserError for an unknown source, a
+    missing asset, or ``source="vcdgs"`` without a project folder.
+    """
     from t2bs.project import write_json
 
+    asset, source, seed = config.asset, config.source, config.seed
     if source not in ("gt", "vcdgs"):
         raise UserError(f"unknown --source {source!r}; use gt or vcdgs")
     t0 = time.time()
-    character, captures, expressions, made_by, gt = _asset_captures(asset, source, frames, prompts, seed, facing)
-    result = evaluate_held_out(character, captures, expressions, components=components, held_out=held_out,
-                               seed=seed, rgb_steps=rgb_steps, image_size=image_size, ground_truth=gt)
-    name = asset.split(":", 1)[1] if asset.startswith("procedural:") else (
-        Path(asset).name if Path(asset).is_dir() else Path(asset).stem)
+    character, captures, expressions, made_by, gt = _asset_captures(
+        asset, source, config.frames, config.prompts, seed, config.facing
+    )
+    result = evaluate_held_out(
+        character,
+        captures,
+        expressions,
+        components=config.components,
+        held_out=config.held_out,
+        seed=seed,
+        rgb_steps=config.rgb_steps,
+        image_size=config.image_size,
+        ground_truth=gt,
+    )
+    name = (
+        asset.split(":", 1)[1]
+        if asset.startswith("procedural:")
+        else (Path(asset).name if Path(asset).is_dir() else Path(asset).stem)
+    )
     row = {"asset": name, "source": source, **result, "captures_from": made_by, "seconds": round(time.time() - t0, 2)}
     out = {"benchmark": "blendshapes", "paper": {"p2p": 0.0017, "pixel_l2": 0.0009}, "rows": [row]}
-    if json_out is not None:
-        write_json(json_out, out)
-    print(json.dumps(out, indent=2, default=float))
+    if config.json_out is not None:
+        write_json(config.json_out, out)
+    return out

@@ -17,13 +17,11 @@ Targets:
 
 from __future__ import annotations
 
-import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
-import typer
 
 from t2bs.errors import UserError
 from t2bs.geometry.camera import Camera, intrinsics, look_at
@@ -58,22 +56,38 @@ def driver_weights(frames: int = 96, seed: int = 0) -> dict[str, np.ndarray]:
     blink_r = bumps(np.array([28, 50, 72]) * f, 2.2 * f, [1.0, 0.9, 1.0])
     smile = bumps(np.array([38, 70]) * f, 6 * f, [0.8, 1.0])
     jitter = rng.uniform(0.97, 1.0, frames)  # tiny, keeps runs with different seeds distinct
-    return {"jawOpen": jaw * jitter, "eyeBlink_L": blink_l, "eyeBlink_R": blink_r, "mouthSmile_L": smile, "mouthSmile_R": smile}
+    return {
+        "jawOpen": jaw * jitter,
+        "eyeBlink_L": blink_l,
+        "eyeBlink_R": blink_r,
+        "mouthSmile_L": smile,
+        "mouthSmile_R": smile,
+    }
 
 
 def driver_camera(size: int = 256) -> Camera:
     """Frontal camera framing the canonical facecap head (face ~ 60 % of the image width)."""
-    return Camera(intrinsics(size, size, 30.0), look_at(np.array([0.0, 0.03, 1.55]), np.array([0.0, 0.03, 0.0])), size, size, "driver")
+    return Camera(
+        intrinsics(size, size, 30.0),
+        look_at(np.array([0.0, 0.03, 1.55]), np.array([0.0, 0.03, 0.0])),
+        size,
+        size,
+        "driver",
+    )
 
 
-def render_driver(weights: dict[str, np.ndarray], size: int = 256, asset: Path | None = None, renderer=None) -> np.ndarray:
+def render_driver(
+    weights: dict[str, np.ndarray], size: int = 256, asset: Path | None = None, renderer=None
+) -> np.ndarray:
     """Frames [T, size, size, 3] uint8 of facecap.glb posed with ``weights``."""
     from t2bs.geometry.io import load_mesh
     from t2bs.render.mesh_renderer import MeshRenderer
 
     path = asset or ASSETS / "facecap.glb"
     if not path.exists():
-        raise UserError(f"driver asset {path} not found (the shared assets: ${ENV} or ../shared/assets beside the checkout)")
+        raise UserError(
+            f"driver asset {path} not found (the shared assets: ${ENV} or ../shared/assets beside the checkout)"
+        )
     mesh, _ = normalize(load_mesh(path))
     cam = driver_camera(size)
     frames = []
@@ -104,7 +118,9 @@ def morph_model(mesh: Mesh, components: int = 100, seed: int = 0):
         captures[name] = (v0[None] + ramp[:, None, None] * mesh.morph_targets[name][None]).astype(np.float32)
     for i in range(4):  # mixtures, as real captures mix shapes
         w = rng.uniform(0, 1, (16, len(names))) * (rng.uniform(size=len(names)) < 0.3)
-        captures[f"mix{i}"] = (v0[None] + np.einsum("tm,mnc->tnc", w, np.stack([mesh.morph_targets[n] for n in names]))).astype(np.float32)
+        captures[f"mix{i}"] = (
+            v0[None] + np.einsum("tm,mnc->tnc", w, np.stack([mesh.morph_targets[n] for n in names]))
+        ).astype(np.float32)
     return build_model(mesh.vertices, captures, components=components, source="morph targets")
 
 
@@ -122,7 +138,7 @@ def load_target(spec: str, seed: int = 0) -> tuple[str, Mesh, bool]:
         prompt = spec.split(":", 1)[1].strip() if ":" in spec else ""
         prompt = prompt or "a cartoon fox"
         return f"procedural:{prompt}", procedural_mesh(prompt, seed), True
-    from t2bs.commands_render import canonical_character
+    from t2bs.character.render_stage import canonical_character
 
     path = Path(spec)
     if not path.exists():
@@ -163,7 +179,11 @@ def retarget_target(spec: str, track, weights: dict[str, np.ndarray], renderer=N
     rows = []
     for drv, (turtle_dir, proc_dir) in DRIVER_PAIRS.items():
         target_dir = proc_dir if procedural else turtle_dir
-        parts = [d for d in (target_dir, target_dir.replace("smile", "smileLeft"), target_dir.replace("smile", "smileRight")) if d in coef]
+        parts = [
+            d
+            for d in (target_dir, target_dir.replace("smile", "smileLeft"), target_dir.replace("smile", "smileRight"))
+            if d in coef
+        ]
         if target_dir == "smile" and "smileLeft" in coef:
             series = (coef["smileLeft"] + coef["smileRight"]) / 2
         elif target_dir in coef:
@@ -172,11 +192,20 @@ def retarget_target(spec: str, track, weights: dict[str, np.ndarray], renderer=N
             continue
         del parts
         driver = sum(weights[d] for d in drv.split("+")) / len(drv.split("+"))
-        rows.append({"target": label, "driver_shape": drv, "target_direction": target_dir, "pearson": round(pearson(driver, series), 4)})
+        rows.append(
+            {
+                "target": label,
+                "driver_shape": drv,
+                "target_direction": target_dir,
+                "pearson": round(pearson(driver, series), 4),
+            }
+        )
     return rows
 
 
-def run_bench(targets: list[str], frames: int = 96, size: int = 256, seed: int = 0, save_dir: Path | None = None) -> dict:
+def run_bench(
+    targets: list[str], frames: int = 96, size: int = 256, seed: int = 0, save_dir: Path | None = None
+) -> dict:
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.face.face_tracking import TrackConfig, track_face
 
@@ -197,23 +226,38 @@ def run_bench(targets: list[str], frames: int = 96, size: int = 256, seed: int =
         imageio.mimwrite(save_dir / "driver.mp4", list(video), fps=30, macro_block_size=1)
     return {
         "rows": rows,
-        "driver": {"asset": "facecap.glb", "frames": frames, "size": size, "found": int(track.found.sum()),
-                   "neutral_frame": track.neutral},
-        "seconds": {"render_driver": round(t_render, 2), "track": round(t_track, 2), "total": round(time.perf_counter() - t0, 2)},
+        "driver": {
+            "asset": "facecap.glb",
+            "frames": frames,
+            "size": size,
+            "found": int(track.found.sum()),
+            "neutral_frame": track.neutral,
+        },
+        "seconds": {
+            "render_driver": round(t_render, 2),
+            "track": round(t_track, 2),
+            "total": round(time.perf_counter() - t0, 2),
+        },
     }
 
 
-def bench_retarget(
-    target: list[str] = typer.Option(None, "--target",
-                                     help="target mesh with morph targets, or procedural:<prompt>; repeatable "
-                                          "(default: the shared turtle.glb, $T2BS_SHARED_ASSETS or ../shared/assets)"),
-    json_path: Optional[Path] = typer.Option(None, "--json", help="also write the result to this JSON file"),
-    frames: int = typer.Option(96, "--frames", help="driver frames"),
-    seed: int = typer.Option(0, "--seed"),
-) -> None:
-    """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions."""
-    result = run_bench(list(target or [str(shared_asset("turtle.glb"))]), frames=frames, seed=seed)
-    text = json.dumps(result, indent=2)
-    print(text)
-    if json_path is not None:
-        write_json(json_path, result)
+@dataclass
+class BenchRetargetConfig:
+    target: tuple[str, ...] = ()  # target meshes with morph targets, or procedural:<prompt>; () = the shared turtle.glb
+    json_path: Path | None = None  # also write the result to this JSON file
+    frames: int = 96  # driver frames
+    seed: int = 0  # seed of the driver weights' jitter
+
+
+def bench_retarget(config: BenchRetargetConfig = BenchRetargetConfig()) -> dict:
+    """Facecap ARKit morphs -> MediaPipe -> target model; Pearson of the target's own directions.
+
+    Reads the shared facecap.glb (the driver) and each target (default: the shared turtle.glb, $T2BS_SHARED_ASSETS or
+    ../shared/assets). Writes ``json_path`` if given. Returns ``run_bench``'s ``{"rows": [{target, driver_shape,
+    target_direction, pearson}], "driver": {...}, "seconds": {...}}``. Raises UserError for a missing driver or
+    target, or a target without morph targets.
+    """
+    result = run_bench(list(config.target or [str(shared_asset("turtle.glb"))]), frames=config.frames, seed=config.seed)
+    if config.json_path is not None:
+        write_json(config.json_path, result)
+    return result

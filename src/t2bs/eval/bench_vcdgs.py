@@ -32,18 +32,18 @@ show it as "-" and are left out of its means.
 
 from __future__ import annotations
 
-import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import typer
 
 from t2bs.errors import UserError
 from t2bs.recon.config import parse_options, preset
 from t2bs.shared_assets import shared_assets_dir
 
 SHARED_ASSETS = shared_assets_dir()
+DEFAULT_ASSETS = ("turtle", "facecap", "procedural:a cartoon fox with big ears")  # when no asset is given
 DEFAULT_PROMPTS = ("blinking", "opening the mouth extremely wide", "smiling", "tongue sticking out the mouth")
 ALL_METHODS = ("full", "no_view", "no_refine", "no_lbs", "no_global", "static", "rigid")
 BASELINES = ("static", "rigid")  # no reconstruction: the neutral, and the neutral moved by the true head motion
@@ -56,7 +56,7 @@ def load_asset(spec: str):
 
         prompt = spec.split(":", 1)[1] or "a cartoon fox with big ears"
         return spec, generate(prompt, "procedural").mesh
-    from t2bs.commands_render import canonical_character
+    from t2bs.character.render_stage import canonical_character
 
     path = Path(spec)
     if not path.exists() and not path.suffix:
@@ -71,8 +71,9 @@ def load_asset(spec: str):
 
 def heldout_images(mesh, vertices: np.ndarray, cameras, shading: str, renderer) -> np.ndarray:
     """[V_held, T, H, W, 3] mesh renders of ``vertices`` [T, N, 3] from ``cameras``."""
-    return np.stack([np.stack([renderer.render(mesh, c, vertices=v, shading=shading).rgb for v in vertices])
-                     for c in cameras])
+    return np.stack(
+        [np.stack([renderer.render(mesh, c, vertices=v, shading=shading).rgb for v in vertices]) for c in cameras]
+    )
 
 
 def seen_vertices(mesh, frames: np.ndarray, cameras, renderer) -> np.ndarray:
@@ -90,13 +91,24 @@ def case_config_overrides(preset_name: str, iterations: int, options: dict | Non
     """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
     over = dict(options or {})
     if iterations:
-        over.update(iterations=iterations, global_iters=min(preset(preset_name).global_iters, iterations // 5))
+        over.update(iterations=iterations, global_iters=min(preset(preset_name).optim.global_iters, iterations // 5))
     return over
 
 
-def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], preset_name: str, size: int,
-             frames: int, holdout: tuple[int, ...], iterations: int = 0, progress: bool = False,
-             options: dict | None = None) -> list[dict]:
+def run_case(
+    name: str,
+    mesh,
+    prompt: str,
+    defects: str,
+    methods: list[str],
+    preset_name: str,
+    size: int,
+    frames: int,
+    holdout: tuple[int, ...],
+    iterations: int = 0,
+    progress: bool = False,
+    options: dict | None = None,
+) -> list[dict]:
     import torch
 
     from t2bs.geometry.metrics import expression_metrics, geometry_metrics, psnr, ssim
@@ -125,25 +137,42 @@ def run_case(name: str, mesh, prompt: str, defects: str, methods: list[str], pre
                 verts = apply_motion(*robust_rigid_motion(mesh.vertices, gt), mesh.vertices).astype(np.float32)
                 seconds = 0.0
             else:
-                over = {**case_config_overrides(preset_name, iterations, options), "method": method,
-                        "holdout_views": tuple(holdout)}
+                over = {
+                    **case_config_overrides(preset_name, iterations, options),
+                    "method": method,
+                    "holdout_views": tuple(holdout),
+                }
                 cfg = preset(preset_name, **over)
-                cuda = torch.cuda.is_available() and cfg.device != "cpu"
+                cuda = torch.cuda.is_available() and cfg.runtime.device != "cpu"
                 if cuda:
                     torch.cuda.reset_peak_memory_stats()
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
                 extra = {"steps": int(res.history.get("steps_run", 0))}
                 if cuda:
-                    extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2 ** 20)
+                    extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
             expr = expression_metrics(verts, gt, mesh.vertices)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
-            rows.append({"asset": name, "prompt": prompt, "defects": defects, "method": method,
-                         "p2p_all": geo["p2p_all"], "p2p_moving": geo["p2p_moving"], "p2p_seen": geo["p2p_seen"],
-                         "seen_fraction": geo["seen_fraction"], "nc": geo["nc"], **expr,
-                         "psnr": psnr(imgs, gt_imgs), "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
-                         "seconds": round(seconds, 2), **extra, **({"hidden_pick": pick} if pick else {})})
+            rows.append(
+                {
+                    "asset": name,
+                    "prompt": prompt,
+                    "defects": defects,
+                    "method": method,
+                    "p2p_all": geo["p2p_all"],
+                    "p2p_moving": geo["p2p_moving"],
+                    "p2p_seen": geo["p2p_seen"],
+                    "seen_fraction": geo["seen_fraction"],
+                    "nc": geo["nc"],
+                    **expr,
+                    "psnr": psnr(imgs, gt_imgs),
+                    "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
+                    "seconds": round(seconds, 2),
+                    **extra,
+                    **({"hidden_pick": pick} if pick else {}),
+                }
+            )
             print(_row_line(rows[-1]), flush=True)
     return rows
 
@@ -154,13 +183,42 @@ def _fmt(r: dict, key: str, spec: str) -> str:
 
 
 def _cells(r: dict) -> list[str]:
-    return [r["asset"], r["prompt"], r["defects"], r["method"], _fmt(r, "expr_p2p", ".5f"), _fmt(r, "expr_ratio", ".3f"),
-            _fmt(r, "recovered", ".2f"), _fmt(r, "cosine", ".2f"), f"{r['p2p_moving']:.5f}", _fmt(r, "p2p_seen", ".5f"),
-            f"{r['p2p_all']:.5f}", f"{r['nc']:.5f}", f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['seconds']:.1f}"]
+    return [
+        r["asset"],
+        r["prompt"],
+        r["defects"],
+        r["method"],
+        _fmt(r, "expr_p2p", ".5f"),
+        _fmt(r, "expr_ratio", ".3f"),
+        _fmt(r, "recovered", ".2f"),
+        _fmt(r, "cosine", ".2f"),
+        f"{r['p2p_moving']:.5f}",
+        _fmt(r, "p2p_seen", ".5f"),
+        f"{r['p2p_all']:.5f}",
+        f"{r['nc']:.5f}",
+        f"{r['psnr']:.2f}",
+        f"{r['ssim']:.4f}",
+        f"{r['seconds']:.1f}",
+    ]
 
 
-HEADER = ("asset", "prompt", "defects", "method", "expr_p2p", "expr/rigid", "recovered", "cosine", "p2p_moving",
-          "p2p_seen", "p2p_all", "NC", "PSNR", "SSIM", "seconds")
+HEADER = (
+    "asset",
+    "prompt",
+    "defects",
+    "method",
+    "expr_p2p",
+    "expr/rigid",
+    "recovered",
+    "cosine",
+    "p2p_moving",
+    "p2p_seen",
+    "p2p_all",
+    "NC",
+    "PSNR",
+    "SSIM",
+    "seconds",
+)
 
 
 def _row_line(r: dict) -> str:
@@ -173,8 +231,19 @@ def markdown(rows: list[dict]) -> str:
     return head + "\n".join("| " + " | ".join(_cells(r)) + " |" for r in rows)
 
 
-METRIC_KEYS = ("expr_p2p", "expr_ratio", "recovered", "cosine", "p2p_all", "p2p_moving", "p2p_seen", "nc", "psnr",
-               "ssim", "seconds")
+METRIC_KEYS = (
+    "expr_p2p",
+    "expr_ratio",
+    "recovered",
+    "cosine",
+    "p2p_all",
+    "p2p_moving",
+    "p2p_seen",
+    "nc",
+    "psnr",
+    "ssim",
+    "seconds",
+)
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -191,10 +260,18 @@ def summarise(rows: list[dict]) -> dict:
     for r in rows:
         if r["method"] != "full":
             continue
-        st = [s for s in rows if s["method"] == "static" and (s["asset"], s["prompt"], s["defects"]) == (r["asset"], r["prompt"], r["defects"])]
+        st = [
+            s
+            for s in rows
+            if s["method"] == "static"
+            and (s["asset"], s["prompt"], s["defects"]) == (r["asset"], r["prompt"], r["defects"])
+        ]
         if st:
             ratio = {k: r[k] / max(st[0][k], 1e-12) for k in ("p2p_moving", "p2p_seen") if k in r and k in st[0]}
-            out["ratio_full_over_static"][f"{r['asset']}/{r['prompt']}/{r['defects']}"] = {**ratio, "nc_better": r["nc"] < st[0]["nc"]}
+            out["ratio_full_over_static"][f"{r['asset']}/{r['prompt']}/{r['defects']}"] = {
+                **ratio,
+                "nc_better": r["nc"] < st[0]["nc"],
+            }
     out["full_vs"] = full_vs_ablations(rows)
     return out
 
@@ -210,42 +287,60 @@ def full_vs_ablations(rows: list[dict]) -> dict:
         for m in ALL_METHODS:
             if m == "full" or m in BASELINES:
                 continue
-            pairs = [(by_key[(a, p, d, "full")], r) for (a, p, dd, mm), r in by_key.items()
-                     if dd == d and mm == m and (a, p, d, "full") in by_key]
+            pairs = [
+                (by_key[(a, p, d, "full")], r)
+                for (a, p, dd, mm), r in by_key.items()
+                if dd == d and mm == m and (a, p, d, "full") in by_key
+            ]
             if not pairs:
                 continue
             entry: dict = {"cases": len(pairs)}
             for k in ("expr_p2p", "p2p_moving", "p2p_seen", "nc"):
                 if all(k in f and k in r for f, r in pairs):
-                    entry[k] = {"full": float(np.mean([f[k] for f, _ in pairs])),
-                                "ablation": float(np.mean([r[k] for _, r in pairs])),
-                                "full_lower": sum(f[k] < r[k] for f, r in pairs)}
+                    entry[k] = {
+                        "full": float(np.mean([f[k] for f, _ in pairs])),
+                        "ablation": float(np.mean([r[k] for _, r in pairs])),
+                        "full_lower": sum(f[k] < r[k] for f, r in pairs),
+                    }
             out[f"{d}/{m}"] = entry
     return out
 
 
 def full_vs_markdown(full_vs: dict) -> str:
     """``full_vs_ablations`` as a table: one line per (defects, ablation, metric)."""
-    lines = ["| defects | ablation | metric | cases | full mean | ablation mean | full lower by | full lower in |",
-             "|---" * 8 + "|"]
+    lines = [
+        "| defects | ablation | metric | cases | full mean | ablation mean | full lower by | full lower in |",
+        "|---" * 8 + "|",
+    ]
     for key, e in full_vs.items():
         d, m = key.split("/")
         for k in ("expr_p2p", "p2p_moving", "p2p_seen", "nc"):
             if k in e:
                 v = e[k]
-                lines.append(f"| {d} | {m} | {k} | {e['cases']} | {v['full']:.5f} | {v['ablation']:.5f} | "
-                             f"{100 * (1 - v['full'] / max(v['ablation'], 1e-12)):.1f} % | {v['full_lower']} of {e['cases']} |")
+                lines.append(
+                    f"| {d} | {m} | {k} | {e['cases']} | {v['full']:.5f} | {v['ablation']:.5f} | "
+                    f"{100 * (1 - v['full'] / max(v['ablation'], 1e-12)):.1f} % | {v['full_lower']} of {e['cases']} |"
+                )
     return "\n".join(lines)
 
 
-def bench_settings(preset_name: str, size: int, frames: int, holdout: tuple[int, ...], iterations: int,
-                   options: dict | None) -> dict:
+def bench_settings(
+    preset_name: str, size: int, frames: int, holdout: tuple[int, ...], iterations: int, options: dict | None
+) -> dict:
     """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
     when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
-    config = preset(preset_name, **case_config_overrides(preset_name, iterations, options)).to_dict()
+    # the configuration's leaves by name (flat, as --set names them), as before the configuration became a tree
+    config = preset(preset_name, **case_config_overrides(preset_name, iterations, options)).flat()
     config.pop("method"), config.pop("holdout_views")
-    return {"preset": preset_name, "size": size, "frames": frames, "holdout_views": list(holdout),
-            "iterations": iterations or "preset", "options": options or {}, "config": config}
+    return {
+        "preset": preset_name,
+        "size": size,
+        "frames": frames,
+        "holdout_views": list(holdout),
+        "iterations": iterations or "preset",
+        "options": options or {},
+        "config": config,
+    }
 
 
 def _row_key(r: dict) -> tuple:
@@ -287,10 +382,22 @@ def _finished_cases(fn, cases: list[tuple], workers: int, *args):
             yield fut.result()
 
 
-def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods: list[str], preset_name: str = "quick",
-              size: int = 128, frames: int = 16, holdout: tuple[int, ...] = (4, 10), iterations: int = 0,
-              json_path: Path | None = None, progress: bool = False, options: dict | None = None,
-              resume: bool = True, workers: int = 1) -> dict:
+def run_bench(
+    assets: list[str],
+    prompts: list[str],
+    defects: list[str],
+    methods: list[str],
+    preset_name: str = "quick",
+    size: int = 128,
+    frames: int = 16,
+    holdout: tuple[int, ...] = (4, 10),
+    iterations: int = 0,
+    json_path: Path | None = None,
+    progress: bool = False,
+    options: dict | None = None,
+    resume: bool = True,
+    workers: int = 1,
+) -> dict:
     """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
     and (``resume``) rows already in that file with the same settings are kept instead of recomputed. ``workers``:
     cases run in parallel processes; the rows keep the (asset, defects, prompt, method) order whatever finishes first."""
@@ -312,13 +419,28 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
             print(_row_line(done[(name, p, d, m)]) + "  (kept)", flush=True)
     new: dict[tuple, dict] = {}
     run = [i for i, left in enumerate(todo) if left]
-    finished = _finished_cases(run_case, [(*cases[i], todo[i]) for i in run], min(workers, max(len(run), 1)), preset_name, size,
-                               frames, holdout, iterations, progress, options)
+    finished = _finished_cases(
+        run_case,
+        [(*cases[i], todo[i]) for i in run],
+        min(workers, max(len(run), 1)),
+        preset_name,
+        size,
+        frames,
+        holdout,
+        iterations,
+        progress,
+        options,
+    )
 
     def ordered() -> list[dict]:
         """Every row known so far (kept or new), in case order."""
-        return [r for name, _, p, d in cases for m in methods
-                for r in [new.get((name, p, d, m)) or done.get((name, p, d, m))] if r is not None]
+        return [
+            r
+            for name, _, p, d in cases
+            for m in methods
+            for r in [new.get((name, p, d, m)) or done.get((name, p, d, m))]
+            if r is not None
+        ]
 
     for case_rows in finished:
         new.update({_row_key(r): r for r in case_rows})
@@ -332,37 +454,66 @@ def run_bench(assets: list[str], prompts: list[str], defects: list[str], methods
     return result
 
 
-def bench_vcdgs_command(
-    asset: list[str] = typer.Option(None, "--asset", help="Asset: turtle, facecap, a glb/vrm path with morph targets, or procedural:PROMPT (repeat). Default: turtle, facecap, procedural fox."),
-    prompts: str = typer.Option(",".join(DEFAULT_PROMPTS), help="Comma-separated expression prompts."),
-    defects: str = typer.Option("clean", help="Comma-separated defect presets: clean, mild, paper."),
-    methods: str = typer.Option("full,static,rigid", help=f"Comma-separated: {', '.join(ALL_METHODS)} (or 'all')."),
-    preset_name: str = typer.Option("quick", "--preset", help="VCDGS preset: quick | paper."),
-    size: int = typer.Option(128, help="Grid frame size in pixels."),
-    frames: int = typer.Option(16, help="Frames per grid."),
-    iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
-    track_weight: float = typer.Option(None, help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's)."),
-    time_budget: float = typer.Option(None, "--time-budget", help="Wall seconds per reconstruction (0 = no cap: every method runs all its steps, so a row depends on the seed only, not on the machine's speed or load; default: the preset's)."),
-    seed: int = typer.Option(None, help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids do not change with it."),
-    hidden_pick: bool = typer.Option(None, "--hidden-pick/--no-hidden-pick", help="Hidden parts' motion picked by render (recon/hidden_parts.py; default: the preset's, on)."),
-    json_file: Path = typer.Option(None, "--json", help="Also write the JSON here (after every case); a re-run with the same file and settings resumes."),
-    fresh: bool = typer.Option(False, "--fresh", help="Recompute every row even if --json holds them from the same settings."),
-    set_options: list[str] = typer.Option(None, "--set", help="Any other VCDGS option as KEY=VALUE (repeat; a field of t2bs.recon.config.VCDGSConfig, e.g. --set knn=4), for every method; recorded in the JSON's settings."),
-    workers: int = typer.Option(1, help="Cases run in this many parallel processes (each reconstruction keeps its configured torch threads, so the rows do not change with --workers; its wall seconds do, and under a time budget its step count: add --time-budget 0 for rows that do not depend on the machine's load)."),
-) -> None:
-    """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
-    assets = list(asset) if asset else ["turtle", "facecap", "procedural:a cartoon fox with big ears"]
-    meths = list(ALL_METHODS) if methods == "all" else [m.strip() for m in methods.split(",") if m.strip()]
-    options = {k: v for k, v in (("track_weight", track_weight), ("time_budget_s", time_budget), ("seed", seed),
-                                 ("hidden_pick", hidden_pick)) if v is not None}
-    options.update(parse_options(set_options or []))
+@dataclass
+class BenchVcdgsConfig:
+    asset: tuple[str, ...] = ()  # turtle, facecap, a glb/vrm with morph targets, procedural:PROMPT; () = DEFAULT_ASSETS
+    prompts: str = ",".join(DEFAULT_PROMPTS)  # comma-separated expression prompts
+    defects: str = "clean"  # comma-separated defect presets: clean, mild, paper
+    methods: str = "full,static,rigid"  # comma-separated names of ALL_METHODS, or "all"
+    preset_name: str = "quick"  # VCDGS preset: quick | paper
+    size: int = 128  # grid frame size in pixels
+    frames: int = 16  # frames per grid
+    iterations: int = 0  # training steps instead of the preset's (0 = the preset's)
+    track_weight: float | None = None  # weight of the optical-flow vertex-track term (None = the preset's)
+    time_budget: float | None = None  # wall seconds per reconstruction, 0 = no cap (None = the preset's)
+    seed: int | None = (
+        None  # VCDGS seed, sampling and initialisation; the grids do not change with it (None = preset's)
+    )
+    hidden_pick: bool | None = None  # pick hidden parts' motion by render (recon/hidden_parts.py; None = the preset's)
+    json_file: Path | None = None  # also write the JSON here, after every case; a re-run with it resumes
+    fresh: bool = False  # recompute every row even if json_file holds them from the same settings
+    set_options: tuple[str, ...] = ()  # other VCDGSConfig fields as "KEY=VALUE", for every method
+    workers: int = 1  # cases run in this many parallel processes (rows do not change with it)
+
+
+def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
+    """VCDGS vs ablations vs static on characters with ground truth (the module docstring says what each column is).
+
+    Reads the assets (shared assets by name, mesh files or procedural characters) and, with ``json_file``, the rows
+    of an earlier run made with the same settings (kept unless ``fresh``). Prints the table header and one line per
+    row as it is made (``(kept)`` for a kept row); writes ``json_file`` after every case (with ``"partial": true``)
+    and at the end. Returns ``{"rows": [...], "summary": {...}, "settings": {...}}`` (``markdown`` and
+    ``full_vs_markdown`` format it). Raises UserError for an unknown asset, method or option, ``--set method`` /
+    ``--set holdout_views`` (the benchmark sets them per row), or workers < 1.
+    """
+    assets = list(config.asset) if config.asset else list(DEFAULT_ASSETS)
+    meths = (
+        list(ALL_METHODS) if config.methods == "all" else [m.strip() for m in config.methods.split(",") if m.strip()]
+    )
+    options = {
+        k: v
+        for k, v in (
+            ("track_weight", config.track_weight),
+            ("time_budget_s", config.time_budget),
+            ("seed", config.seed),
+            ("hidden_pick", config.hidden_pick),
+        )
+        if v is not None
+    }
+    options.update(parse_options(config.set_options))
     if {"method", "holdout_views"} & set(options):
         raise UserError("--set method / holdout_views: the benchmark sets these per row (use --methods)")
-    result = run_bench(assets, [p.strip() for p in prompts.split(",") if p.strip()],
-                       [d.strip() for d in defects.split(",") if d.strip()], meths, preset_name, size, frames,
-                       iterations=iterations, json_path=json_file,
-                       options=options or None, resume=not fresh, workers=workers)
-    print(markdown(result["rows"]))
-    if result["summary"]["full_vs"]:
-        print("\n" + full_vs_markdown(result["summary"]["full_vs"]))
-    print(json.dumps(result, indent=1))
+    return run_bench(
+        assets,
+        [p.strip() for p in config.prompts.split(",") if p.strip()],
+        [d.strip() for d in config.defects.split(",") if d.strip()],
+        meths,
+        config.preset_name,
+        config.size,
+        config.frames,
+        iterations=config.iterations,
+        json_path=config.json_file,
+        options=options or None,
+        resume=not config.fresh,
+        workers=config.workers,
+    )

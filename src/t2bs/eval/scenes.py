@@ -68,8 +68,21 @@ def lid_scene(frames: int = 6, size: int = 64, lid_angle_deg: float = 14.0, view
         verts[t, lid_mask] = (mesh.vertices[lid_mask] - centre) @ rot.T + centre
     verts = verts.astype(np.float32)
     times = (np.arange(frames) / 8.0).astype(np.float32)
-    anim = Animation("lid sliding down", times, {"blink": amount.astype(np.float32)}, [], np.zeros((frames, 0), np.float32),
-                     np.zeros((frames, 3), np.float32), centre.astype(np.float32), verts, verts)
-    grid = render_grid(mesh, anim, GridConfig(frames=frames, size=size, views=views, shading="unlit", head_motion=0.0),
-                       meta={"prompt": "lid scene", "expression": "lid sliding down"})
+    anim = Animation(
+        "lid sliding down",
+        times,
+        {"blink": amount.astype(np.float32)},
+        [],
+        np.zeros((frames, 0), np.float32),
+        np.zeros((frames, 3), np.float32),
+        centre.astype(np.float32),
+        verts,
+        verts,
+    )
+    grid = render_grid(
+        mesh,
+        anim,
+        GridConfig(frames=frames, size=size, views=views, shading="unlit", head_motion=0.0),
+        meta={"prompt": "lid scene", "expression": "lid sliding down"},
+    )
     return mesh, grid

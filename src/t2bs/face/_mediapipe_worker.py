@@ -27,8 +27,13 @@ def main(argv):
     found = np.zeros(t, bool)
     # static_image_mode=False tracks the face between frames (a detector run only when the track is
     # lost), which is the intended use for video and is steadier than detecting every frame.
-    with face_mesh.FaceMesh(static_image_mode=static, max_num_faces=1, refine_landmarks="--norefine" not in argv,
-                            min_detection_confidence=0.5, min_tracking_confidence=0.5) as fm:
+    with face_mesh.FaceMesh(
+        static_image_mode=static,
+        max_num_faces=1,
+        refine_landmarks="--norefine" not in argv,
+        min_detection_confidence=0.5,
+        min_tracking_confidence=0.5,
+    ) as fm:
         for i in range(t):
             res = fm.process(np.ascontiguousarray(frames[i]))
             if res.multi_face_landmarks:

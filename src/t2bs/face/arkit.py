@@ -49,16 +49,49 @@ from t2bs.errors import UserError
 
 # Apple's names, grouped as a viewer lists them (ARFaceAnchor.BlendShapeLocation).
 ARKIT_GROUPS: dict[str, list[str]] = {
-    "eyes": ["eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight", "eyeLookInLeft", "eyeLookInRight",
-             "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight",
-             "eyeWideLeft", "eyeWideRight"],
+    "eyes": [
+        "eyeBlinkLeft",
+        "eyeBlinkRight",
+        "eyeLookDownLeft",
+        "eyeLookDownRight",
+        "eyeLookInLeft",
+        "eyeLookInRight",
+        "eyeLookOutLeft",
+        "eyeLookOutRight",
+        "eyeLookUpLeft",
+        "eyeLookUpRight",
+        "eyeSquintLeft",
+        "eyeSquintRight",
+        "eyeWideLeft",
+        "eyeWideRight",
+    ],
     "brows": ["browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight"],
     "jaw": ["jawForward", "jawLeft", "jawRight", "jawOpen"],
-    "mouth": ["mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight",
-              "mouthFrownLeft", "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft",
-              "mouthStretchRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper",
-              "mouthPressLeft", "mouthPressRight", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft",
-              "mouthUpperUpRight"],
+    "mouth": [
+        "mouthClose",
+        "mouthFunnel",
+        "mouthPucker",
+        "mouthLeft",
+        "mouthRight",
+        "mouthSmileLeft",
+        "mouthSmileRight",
+        "mouthFrownLeft",
+        "mouthFrownRight",
+        "mouthDimpleLeft",
+        "mouthDimpleRight",
+        "mouthStretchLeft",
+        "mouthStretchRight",
+        "mouthRollLower",
+        "mouthRollUpper",
+        "mouthShrugLower",
+        "mouthShrugUpper",
+        "mouthPressLeft",
+        "mouthPressRight",
+        "mouthLowerDownLeft",
+        "mouthLowerDownRight",
+        "mouthUpperUpLeft",
+        "mouthUpperUpRight",
+    ],
     "cheeks": ["cheekPuff", "cheekSquintLeft", "cheekSquintRight"],
     "nose": ["noseSneerLeft", "noseSneerRight"],
     "tongue": ["tongueOut"],
@@ -81,7 +114,9 @@ class ArkitConfig:
     min_reference_motion: float = 0.035  # least landmark motion in the image plane, fraction of the eye / mouth width (jawForward: 3.1 %, a depth motion)
     min_cosine: float = 0.6  # achieved vs transferred landmark motion, over the regions the target moves
     min_reach: float = 0.3  # achieved landmark motion projected on the target, as a fraction of the target
-    max_crosstalk: float = 0.4  # largest fraction of the achieved motion (norm) outside the target's regions (both eyes for one: ~0.7)
+    max_crosstalk: float = (
+        0.4  # largest fraction of the achieved motion (norm) outside the target's regions (both eyes for one: ~0.7)
+    )
     prior: float = 1e-4  # weight of the PCA prior sum (s_0/s_k)^2 w_k^2, relative to the solve's largest diagonal entry
 
 
@@ -92,12 +127,20 @@ class ArkitShapes:
     report: dict = field(default_factory=dict)  # every one of the 52 -> {"present", "why", "cosine", "reach", ...}
 
     def to_dict(self) -> dict:
-        return {"names": self.names, "weights": np.round(self.weights, 7).tolist(), "report": self.report,
-                "reference": "ICT-FaceKit (MIT), see t2bs/face/data/arkit_landmarks.json"}
+        return {
+            "names": self.names,
+            "weights": np.round(self.weights, 7).tolist(),
+            "report": self.report,
+            "reference": "ICT-FaceKit (MIT), see t2bs/face/data/arkit_landmarks.json",
+        }
 
     @staticmethod
     def from_dict(d: dict, num_components: int) -> "ArkitShapes":
-        w = np.asarray(d.get("weights", []), np.float64).reshape(-1, num_components) if d.get("names") else np.zeros((0, num_components))
+        w = (
+            np.asarray(d.get("weights", []), np.float64).reshape(-1, num_components)
+            if d.get("names")
+            else np.zeros((0, num_components))
+        )
         if len(w) != len(d.get("names", [])):
             raise UserError("arkit.json: names and weights disagree (rebuild with `t2bs blendshapes DIR --force`)")
         return ArkitShapes(list(d.get("names", [])), w, dict(d.get("report", {})))
@@ -151,9 +194,17 @@ def _agreement(target: np.ndarray, achieved: np.ndarray) -> tuple[float, float, 
     return cos, reach, crosstalk
 
 
-def derive_arkit_shapes(neutral: np.ndarray, basis: np.ndarray, singular_values: np.ndarray, faces: np.ndarray,
-                        landmark_ids: np.ndarray, eyeballs: dict | None = None, mouth_width: float | None = None,
-                        config: ArkitConfig = ArkitConfig(), reference: Path = REFERENCE) -> ArkitShapes:
+def derive_arkit_shapes(
+    neutral: np.ndarray,
+    basis: np.ndarray,
+    singular_values: np.ndarray,
+    faces: np.ndarray,
+    landmark_ids: np.ndarray,
+    eyeballs: dict | None = None,
+    mouth_width: float | None = None,
+    config: ArkitConfig = ArkitConfig(),
+    reference: Path = REFERENCE,
+) -> ArkitShapes:
     """The 52 ARKit shapes in a blendshape model's space (``neutral`` [N, 3], ``basis`` [K, N, 3],
     ``singular_values`` [K] of the captures, for the prior).
 
@@ -171,7 +222,9 @@ def derive_arkit_shapes(neutral: np.ndarray, basis: np.ndarray, singular_values:
     # The reference is exact geometry, not a MediaPipe reading: a shut reference eye is a shut eye.
     tcfg = TransferConfig(closed_ratio=0.0)
     sv = np.maximum(np.asarray(singular_values, np.float64), 1e-12)
-    solver = RetargetSolver(neutral, basis, faces, ids, eyeballs, SolveConfig(ridge=config.prior), prior=(sv[0] / sv) ** 2)
+    solver = RetargetSolver(
+        neutral, basis, faces, ids, eyeballs, SolveConfig(ridge=config.prior), prior=(sv[0] / sv) ** 2
+    )
     a_lm = basis[:, ids, :2].reshape(len(basis), -1)  # [K, 40] landmark X, Y motion of each component
     names, weights, report = [], [], {}
     for name in ARKIT_NAMES:
@@ -180,9 +233,12 @@ def derive_arkit_shapes(neutral: np.ndarray, basis: np.ndarray, singular_values:
             continue
         motion = reference_motion(ref_neutral, ref_shapes[name])
         if motion < config.min_reference_motion:
-            report[name] = {"present": False, "reference_motion": round(motion, 4),
-                            "why": f"moves no eye or mouth landmark in the image plane (largest {motion:.1%} of the region's "
-                                   f"width): the 20 retargeting landmarks cannot see it"}
+            report[name] = {
+                "present": False,
+                "reference_motion": round(motion, 4),
+                "why": f"moves no eye or mouth landmark in the image plane (largest {motion:.1%} of the region's "
+                f"width): the 20 retargeting landmarks cannot see it",
+            }
             continue
         tr = transfer_motion(_reference_track(ref_neutral, ref_shapes[name]), char_lm, tcfg, mouth_width=mouth_width)
         solver.reset()
@@ -190,17 +246,24 @@ def derive_arkit_shapes(neutral: np.ndarray, basis: np.ndarray, singular_values:
         target = tr.targets[1] - char_lm[:, :2]  # [20, 2]
         achieved = (w @ a_lm).reshape(20, 2)
         cos, reach, crosstalk = _agreement(target, achieved)
-        entry = {"reference_motion": round(motion, 4), "cosine": round(cos, 4), "reach": round(reach, 4),
-                 "crosstalk": round(crosstalk, 4)}
+        entry = {
+            "reference_motion": round(motion, 4),
+            "cosine": round(cos, 4),
+            "reach": round(reach, 4),
+            "crosstalk": round(crosstalk, 4),
+        }
         if cos >= config.min_cosine and reach >= config.min_reach and crosstalk <= config.max_crosstalk:
             names.append(name)
             weights.append(w)
             report[name] = {"present": True, **entry, "why": "derived"}
         else:
-            report[name] = {"present": False, **entry,
-                            "why": f"the captures cannot express it: landmark cosine {cos:.2f} (need {config.min_cosine}), "
-                                   f"reach {reach:.2f} (need {config.min_reach}), motion elsewhere {crosstalk:.2f} "
-                                   f"(at most {config.max_crosstalk})"}
+            report[name] = {
+                "present": False,
+                **entry,
+                "why": f"the captures cannot express it: landmark cosine {cos:.2f} (need {config.min_cosine}), "
+                f"reach {reach:.2f} (need {config.min_reach}), motion elsewhere {crosstalk:.2f} "
+                f"(at most {config.max_crosstalk})",
+            }
     w = np.asarray(weights, np.float64).reshape(len(names), basis.shape[0])
     return ArkitShapes(names, w, report)
 
@@ -217,20 +280,27 @@ def summary(shapes: ArkitShapes) -> str:
 
 
 def project_arkit_shapes(project_root: Path, model, character, config: ArkitConfig = ArkitConfig()) -> ArkitShapes:
-    """ARKit shapes of a project's model: its landmarks (landmarks/landmarks.json, detected and written
-    when absent; UserError when the character has none) -> ``derive_arkit_shapes``."""
-    from t2bs.project import read_json
-    from t2bs.face.landmarks import Landmarks
+    """ARKit shapes of a project's model: its landmarks (landmarks/landmarks.json, found on ``character``
+    and the model's neutral and written when absent; UserError when the character has none) ->
+    ``derive_arkit_shapes``."""
+    from t2bs.project import Project, read_json
+    from t2bs.face.landmarks import Landmarks, find_project_landmarks
 
     path = Path(project_root) / "landmarks" / "landmarks.json"
     if path.exists():
         lm = Landmarks.from_dict(read_json(path), model.num_vertices)
     else:
-        from t2bs.retarget.commands import compute_landmarks
-
-        lm = compute_landmarks(Path(project_root))
-    return derive_arkit_shapes(model.neutral, model.basis, model.singular_values, character.faces, lm.vertex_ids,
-                               lm.eyeballs, lm.regions.get("mouth", {}).get("width_world"), config)
+        lm = find_project_landmarks(Project(project_root), character, model)
+    return derive_arkit_shapes(
+        model.neutral,
+        model.basis,
+        model.singular_values,
+        character.faces,
+        lm.vertex_ids,
+        lm.eyeballs,
+        lm.regions.get("mouth", {}).get("width_world"),
+        config,
+    )
 
 
 def load_arkit_shapes(path: Path, num_components: int) -> ArkitShapes | None:
@@ -246,14 +316,35 @@ def load_arkit_shapes(path: Path, num_components: int) -> ArkitShapes | None:
 
 
 # A dozen shapes that show a rig's range at a glance (first the present ones of this list).
-SHEET_SHAPES = ["eyeBlinkLeft", "eyeBlinkRight", "eyeWideLeft", "eyeLookDownLeft", "jawOpen", "mouthClose", "mouthFunnel",
-                "mouthPucker", "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthLeft", "mouthRollLower",
-                "mouthShrugLower", "mouthPressLeft", "mouthLowerDownLeft", "mouthUpperUpLeft", "cheekSquintLeft",
-                "jawLeft", "mouthStretchLeft", "noseSneerLeft", "cheekPuff"]
+SHEET_SHAPES = [
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeWideLeft",
+    "eyeLookDownLeft",
+    "jawOpen",
+    "mouthClose",
+    "mouthFunnel",
+    "mouthPucker",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthFrownLeft",
+    "mouthLeft",
+    "mouthRollLower",
+    "mouthShrugLower",
+    "mouthPressLeft",
+    "mouthLowerDownLeft",
+    "mouthUpperUpLeft",
+    "cheekSquintLeft",
+    "jawLeft",
+    "mouthStretchLeft",
+    "noseSneerLeft",
+    "cheekPuff",
+]
 
 
-def contact_sheet(model, character, shapes: ArkitShapes, count: int = 12, size: int = 192, columns: int = 4,
-                  renderer=None) -> np.ndarray:
+def contact_sheet(
+    model, character, shapes: ArkitShapes, count: int = 12, size: int = 192, columns: int = 4, renderer=None
+) -> np.ndarray:
     """[H, W, 3] uint8 frontal renders of the neutral and up to ``count`` present ARKit shapes at weight 1,
     each labelled with its name (the neutral first, so each shape compares against it)."""
     from PIL import Image, ImageDraw
@@ -287,5 +378,5 @@ def contact_sheet(model, character, shapes: ArkitShapes, count: int = 12, size: 
     sheet = np.full((rows * size, columns * size, 3), 255, np.uint8)
     for i, tile in enumerate(tiles):
         r, c = divmod(i, columns)
-        sheet[r * size:(r + 1) * size, c * size:(c + 1) * size] = tile
+        sheet[r * size : (r + 1) * size, c * size : (c + 1) * size] = tile
     return sheet

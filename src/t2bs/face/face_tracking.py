@@ -47,9 +47,26 @@ from t2bs.errors import UserError
 
 # 68-scheme index -> MediaPipe face-mesh index (the table in the module docstring).
 MEDIAPIPE_TO_68: dict[int, int] = {
-    36: 33, 37: 160, 38: 158, 39: 133, 40: 153, 41: 144,
-    42: 362, 43: 385, 44: 387, 45: 263, 46: 373, 47: 380,
-    60: 78, 61: 81, 62: 13, 63: 311, 64: 308, 65: 402, 66: 14, 67: 178,
+    36: 33,
+    37: 160,
+    38: 158,
+    39: 133,
+    40: 153,
+    41: 144,
+    42: 362,
+    43: 385,
+    44: 387,
+    45: 263,
+    46: 373,
+    47: 380,
+    60: 78,
+    61: 81,
+    62: 13,
+    63: 311,
+    64: 308,
+    65: 402,
+    66: 14,
+    67: 178,
 }
 LANDMARKS_68: list[int] = list(MEDIAPIPE_TO_68)  # [20] the retargeting landmarks, in order
 MEDIAPIPE_20: list[int] = [MEDIAPIPE_TO_68[i] for i in LANDMARKS_68]  # [20] their MediaPipe indices
@@ -82,7 +99,9 @@ class TrackConfig:
 
 @dataclass
 class FaceTrack:
-    points: np.ndarray  # [T, 20, 3] head-pose-free landmarks, pixels of the neutral frame (x right, y down, z ~ x scale)
+    points: (
+        np.ndarray
+    )  # [T, 20, 3] head-pose-free landmarks, pixels of the neutral frame (x right, y down, z ~ x scale)
     image_points: np.ndarray  # [T, 20, 2] landmarks in the image (pixels), for overlays
     found: np.ndarray  # [T] bool: a face was detected in the frame (others are interpolated or held)
     neutral: int  # index of the neutral frame
@@ -93,6 +112,7 @@ class FaceTrack:
 # ----------------------------------------------------------------------------------------------
 # Reading the driver
 # ----------------------------------------------------------------------------------------------
+
 
 def read_driver(path: str | os.PathLike, max_frames: int | None = None) -> tuple[np.ndarray, float]:
     """Frames [T, H, W, 3] uint8 and fps of a video file or a folder of images (sorted by name)."""
@@ -137,6 +157,7 @@ def read_driver(path: str | os.PathLike, max_frames: int | None = None) -> tuple
 # MediaPipe
 # ----------------------------------------------------------------------------------------------
 
+
 def mediapipe_python() -> str:
     """The interpreter that has mediapipe 0.10.21 (its own venv, see the module docstring)."""
     env = os.environ.get("T2BS_MEDIAPIPE_PYTHON")
@@ -147,8 +168,10 @@ def mediapipe_python() -> str:
     candidate = DEFAULT_VENV / "bin" / "python"
     if candidate.exists():
         return str(candidate)
-    raise UserError(f"MediaPipe face tracker not installed: run scripts/setup.sh (it creates {DEFAULT_VENV}) "
-                    "or set T2BS_MEDIAPIPE_PYTHON to a python with mediapipe==0.10.21")
+    raise UserError(
+        f"MediaPipe face tracker not installed: run scripts/setup.sh (it creates {DEFAULT_VENV}) "
+        "or set T2BS_MEDIAPIPE_PYTHON to a python with mediapipe==0.10.21"
+    )
 
 
 def mediapipe_available() -> bool:
@@ -194,6 +217,7 @@ def run_face_mesh(frames: np.ndarray, static: bool = False, progress=None) -> tu
 # ----------------------------------------------------------------------------------------------
 # From 468 points to the 20, head pose removed
 # ----------------------------------------------------------------------------------------------
+
 
 def eye_openness(p: np.ndarray, eye: str) -> np.ndarray:
     """Lid gap / eye width for points [..., 20, >=2] (image y down) -> [...]."""
@@ -271,10 +295,12 @@ def track_landmarks(lm468: np.ndarray, found: np.ndarray, fps: float, config: Tr
         import torch
 
         src = torch.as_tensor(lm468[idx][:, STABLE_MEDIAPIPE], dtype=torch.float64)
-        rot, tr, s = roma.rigid_points_registration(src, torch.as_tensor(ref, dtype=torch.float64).expand_as(src),
-                                                    compute_scaling=True)
-        aligned[idx] = (s[:, None, None] * torch.as_tensor(image20[idx], dtype=torch.float64) @ rot.transpose(1, 2)
-                        + tr[:, None]).numpy()
+        rot, tr, s = roma.rigid_points_registration(
+            src, torch.as_tensor(ref, dtype=torch.float64).expand_as(src), compute_scaling=True
+        )
+        aligned[idx] = (
+            s[:, None, None] * torch.as_tensor(image20[idx], dtype=torch.float64) @ rot.transpose(1, 2) + tr[:, None]
+        ).numpy()
     missing = np.nonzero(~found)[0]
     if len(missing):
         aligned = fill_missing(aligned, found)
@@ -282,13 +308,23 @@ def track_landmarks(lm468: np.ndarray, found: np.ndarray, fps: float, config: Tr
     aligned = smooth(aligned, config.smooth_sigma)
     runs = _runs(missing)
     report = {
-        "frames": t, "found": n_found, "missing": int(len(missing)), "missing_runs": runs,
+        "frames": t,
+        "found": n_found,
+        "missing": int(len(missing)),
+        "missing_runs": runs,
         "filled": "linear interpolation between tracked frames, held before the first / after the last",
-        "neutral_frame": neutral, "neutral_detected": config.neutral_frame is None,
+        "neutral_frame": neutral,
+        "neutral_detected": config.neutral_frame is None,
         "smooth_sigma_frames": config.smooth_sigma,
     }
-    return FaceTrack(points=aligned.astype(np.float32), image_points=image20[..., :2].astype(np.float32), found=found.copy(),
-                     neutral=neutral, fps=float(fps), report=report)
+    return FaceTrack(
+        points=aligned.astype(np.float32),
+        image_points=image20[..., :2].astype(np.float32),
+        found=found.copy(),
+        neutral=neutral,
+        fps=float(fps),
+        report=report,
+    )
 
 
 def _runs(idx: np.ndarray) -> list[list[int]]:

@@ -32,13 +32,19 @@ class GroundingSamSegmenter:
         self.box_threshold = box_threshold
 
     @staticmethod
-    def from_pretrained(dino_dir: str | os.PathLike | None = None, sam_dir: str | os.PathLike | None = None) -> "GroundingSamSegmenter":
+    def from_pretrained(
+        dino_dir: str | os.PathLike | None = None, sam_dir: str | os.PathLike | None = None
+    ) -> "GroundingSamSegmenter":
         dino_dir = Path(dino_dir or DEFAULT_ROOT / "grounding-dino")
         sam_dir = Path(sam_dir or DEFAULT_ROOT / "sam")
         for what, where, hub in (("Grounding-DINO weights", dino_dir, DINO_ID), ("SAM weights", sam_dir, SAM_ID)):
             if not (where / "config.json").exists():
-                raise MissingCheckpointError(what, str(where), f"download {hub} (e.g. `huggingface-cli download {hub} --local-dir {where}`) "
-                                             "on a machine with internet and copy it there, or set T2BS_CHECKPOINTS")
+                raise MissingCheckpointError(
+                    what,
+                    str(where),
+                    f"download {hub} (e.g. `huggingface-cli download {hub} --local-dir {where}`) "
+                    "on a machine with internet and copy it there, or set T2BS_CHECKPOINTS",
+                )
         try:
             from transformers import AutoModelForZeroShotObjectDetection, AutoProcessor, SamModel, SamProcessor
         except ImportError:
@@ -62,7 +68,8 @@ class GroundingSamSegmenter:
                 inputs = self.dino_proc(images=pil, text=f"{label}.", return_tensors="pt")
                 res = self.dino(**inputs)
                 det = self.dino_proc.post_process_grounded_object_detection(
-                    res, inputs["input_ids"], threshold=0.0, text_threshold=0.0, target_sizes=[(h, w)])[0]
+                    res, inputs["input_ids"], threshold=0.0, text_threshold=0.0, target_sizes=[(h, w)]
+                )[0]
                 scores, boxes = det["scores"].numpy(), det["boxes"].numpy()
                 order = np.argsort(-scores)
                 boxes = np.clip(boxes[order], 0, [w - 1, h - 1, w - 1, h - 1])
@@ -91,10 +98,14 @@ class GroundingSamSegmenter:
         if not boxes:
             return masks
         names = list(boxes)
-        inputs = self.sam_proc(Image.fromarray(image), input_boxes=[[boxes[n].tolist() for n in names]], return_tensors="pt")
+        inputs = self.sam_proc(
+            Image.fromarray(image), input_boxes=[[boxes[n].tolist() for n in names]], return_tensors="pt"
+        )
         with torch.no_grad():
             res = self.sam(**inputs, multimask_output=False)
-        post = self.sam_proc.post_process_masks(res.pred_masks, inputs["original_sizes"], inputs["reshaped_input_sizes"])[0]
+        post = self.sam_proc.post_process_masks(
+            res.pred_masks, inputs["original_sizes"], inputs["reshaped_input_sizes"]
+        )[0]
         for i, n in enumerate(names):
             m = post[i, 0].numpy().astype(bool)
             x0, y0, x1, y1 = np.round(boxes[n]).astype(int)

@@ -30,8 +30,10 @@ Order of the 20 (face_tracking.LANDMARKS_68): 36-41 on the image-left eye (the c
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -39,6 +41,7 @@ from t2bs.errors import UserError
 from t2bs.geometry.camera import Camera, frontal_camera
 from t2bs.geometry.mesh import Mesh
 from t2bs.face.face_tracking import LANDMARKS_68
+from t2bs.project import Project, read_json, write_image, write_json
 
 EYE_ANGLES = [180.0, 120.0, 60.0, 0.0, -60.0, -120.0]  # degrees, ellipse-normalised, y up
 MOUTH_ANGLES = [180.0, 135.0, 90.0, 45.0, 0.0, -45.0, -90.0, -135.0]
@@ -82,10 +85,15 @@ class Landmarks:
 
     def to_dict(self) -> dict:
         return {
-            "version": LANDMARK_VERSION, "backend": self.backend, "landmarks_68": LANDMARKS_68,
-            "vertex_ids": self.vertex_ids.tolist(), "points2d": np.round(self.points2d, 2).tolist(),
-            "positions": np.round(self.positions, 6).tolist(), "camera": self.camera.to_dict(),
-            "eyeballs": {k: np.asarray(v).tolist() for k, v in self.eyeballs.items()}, "regions": self.regions,
+            "version": LANDMARK_VERSION,
+            "backend": self.backend,
+            "landmarks_68": LANDMARKS_68,
+            "vertex_ids": self.vertex_ids.tolist(),
+            "points2d": np.round(self.points2d, 2).tolist(),
+            "positions": np.round(self.positions, 6).tolist(),
+            "camera": self.camera.to_dict(),
+            "eyeballs": {k: np.asarray(v).tolist() for k, v in self.eyeballs.items()},
+            "regions": self.regions,
         }
 
     @staticmethod
@@ -95,14 +103,21 @@ class Landmarks:
             raise UserError(f"landmarks need 20 vertex ids (68-scheme 36-47, 60-67), got {ids.size}")
         if num_vertices is not None and (ids.min() < 0 or ids.max() >= num_vertices):
             raise UserError(f"landmark vertex ids must be in 0..{num_vertices - 1}")
-        return Landmarks(ids, np.asarray(d.get("points2d", np.zeros((20, 2))), float), np.asarray(d.get("positions", np.zeros((20, 3))), float),
-                         Camera.from_dict(d["camera"]) if "camera" in d else frontal_camera(512), d.get("backend", "override"),
-                         {k: np.asarray(v, int) for k, v in d.get("eyeballs", {}).items()}, d.get("regions", {}))
+        return Landmarks(
+            ids,
+            np.asarray(d.get("points2d", np.zeros((20, 2))), float),
+            np.asarray(d.get("positions", np.zeros((20, 3))), float),
+            Camera.from_dict(d["camera"]) if "camera" in d else frontal_camera(512),
+            d.get("backend", "override"),
+            {k: np.asarray(v, int) for k, v in d.get("eyeballs", {}).items()},
+            d.get("regions", {}),
+        )
 
 
 # ----------------------------------------------------------------------------------------------
 # Contours and lifting
 # ----------------------------------------------------------------------------------------------
+
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
     """The largest 8-connected component of ``mask`` with its holes filled."""
@@ -138,8 +153,15 @@ def contour_points(mask: np.ndarray, angles_deg) -> tuple[np.ndarray, dict]:
     return np.asarray(out), {"centre": [float(cx), float(cy)], "half_width": float(a), "half_height": float(b)}
 
 
-def lift_points(points2d: np.ndarray, camera: Camera, vertices: np.ndarray, visible: np.ndarray, mask: np.ndarray,
-                lift: str = "outside", allowed: list | None = None) -> np.ndarray:
+def lift_points(
+    points2d: np.ndarray,
+    camera: Camera,
+    vertices: np.ndarray,
+    visible: np.ndarray,
+    mask: np.ndarray,
+    lift: str = "outside",
+    allowed: list | None = None,
+) -> np.ndarray:
     """Vertex ids [P]: nearest visible vertex (in the image) to each point, outside/inside ``mask``.
 
     ``allowed``: per point an [N] bool of the vertices it may land on (e.g. the upper lip for the
@@ -196,6 +218,7 @@ def inner_lip_points(points2d: np.ndarray, upper: np.ndarray, lower: np.ndarray)
 # Backends
 # ----------------------------------------------------------------------------------------------
 
+
 def face_parts(mesh: Mesh, face_id: np.ndarray) -> np.ndarray:
     """[H, W] part id of the surface seen in each pixel (-1 background / unlabelled)."""
     out = np.full(face_id.shape, -1, np.int32)
@@ -214,8 +237,10 @@ def has_part_labels(mesh: Mesh) -> bool:
 def regions_from_parts(mesh: Mesh, camera: Camera, renderer) -> dict[str, Region]:
     """Eyes: the visible eyeball of each eye part; mouth: interior/teeth/tongue when visible, else the lips."""
     if not has_part_labels(mesh):
-        raise UserError("character has no eye/mouth part labels (eye_left, eye_right, lip_*/mouth_interior); "
-                        "use --backend motion or grounding-sam, or --override JSON")
+        raise UserError(
+            "character has no eye/mouth part labels (eye_left, eye_right, lip_*/mouth_interior); "
+            "use --backend motion or grounding-sam, or --override JSON"
+        )
     res = renderer.render(mesh, camera, shading="unlit")
     parts = face_parts(mesh, res.face_id)
     ids = {n: i for i, n in enumerate(mesh.part_names)}
@@ -236,8 +261,13 @@ def regions_from_parts(mesh: Mesh, camera: Camera, renderer) -> dict[str, Region
         # The six eye points belong on the lid margin around the visible eyeball (what a blink moves),
         # not on the eyeball's rim or the skin behind the lid: lift them to the eyelid part when labelled.
         lid = verts(f"eyelid_{side}")
-        regions[region] = Region(largest_component(m), mesh.vertices, "outside", mesh.part_mask(part),
-                                 lift_vertices=None if lid is None else [lid] * len(EYE_ANGLES))
+        regions[region] = Region(
+            largest_component(m),
+            mesh.vertices,
+            "outside",
+            mesh.part_mask(part),
+            lift_vertices=None if lid is None else [lid] * len(EYE_ANGLES),
+        )
     upper, lower = pix("lip_upper"), pix("lip_lower")
     inner = pix("mouth_interior", "teeth", "tongue")
     if upper.sum() >= 4 and lower.sum() >= 4:
@@ -246,15 +276,24 @@ def regions_from_parts(mesh: Mesh, camera: Camera, renderer) -> dict[str, Region
         # either), so mouth-open moves exactly the lower three and a smile the corners. A tiny
         # patch of interior or teeth (fangs over a closed mouth) is not the mouth opening.
         both_lips = verts("lip_upper", "lip_lower")
-        allowed = [both_lips if a in (0.0, 180.0) else verts("lip_upper" if a > 0 else "lip_lower") for a in MOUTH_ANGLES]
-        regions["mouth"] = Region(largest_component(upper | lower | inner), mesh.vertices, "inside",
-                                  lift_vertices=allowed, lips=(upper, lower))
+        allowed = [
+            both_lips if a in (0.0, 180.0) else verts("lip_upper" if a > 0 else "lip_lower") for a in MOUTH_ANGLES
+        ]
+        regions["mouth"] = Region(
+            largest_component(upper | lower | inner),
+            mesh.vertices,
+            "inside",
+            lift_vertices=allowed,
+            lips=(upper, lower),
+        )
     elif inner.sum() >= 12:
         regions["mouth"] = Region(largest_component(inner), mesh.vertices, "outside")
     else:
         lips = upper | lower
         if lips.sum() < 4:
-            raise UserError("the character's mouth (lips or interior) is not visible from the front; use --override JSON")
+            raise UserError(
+                "the character's mouth (lips or interior) is not visible from the front; use --override JSON"
+            )
         regions["mouth"] = Region(largest_component(lips), mesh.vertices, "inside")
     return regions
 
@@ -302,8 +341,10 @@ def regions_from_motion(mesh: Mesh, camera: Camera, renderer, shapes: dict[str, 
     from scipy import ndimage
 
     if "mouth_open" not in shapes or not ({"blink_left", "blink_right"} <= set(shapes) or "blink" in shapes):
-        raise UserError("character has no landmarks: no part labels and no blink / mouth-open shapes "
-                        "(morph targets or named blendshapes); use --backend grounding-sam or --override JSON")
+        raise UserError(
+            "character has no landmarks: no part labels and no blink / mouth-open shapes "
+            "(morph targets or named blendshapes); use --backend grounding-sam or --override JSON"
+        )
     v0 = mesh.vertices.astype(np.float64)
     neutral = renderer.render(mesh, camera, shading="lambert")
     h, w = neutral.mask.shape
@@ -319,7 +360,7 @@ def regions_from_motion(mesh: Mesh, camera: Camera, renderer, shapes: dict[str, 
         if side is not None:  # one shape closes both eyes: keep the image half of this eye
             half = np.zeros_like(ch)
             if side == "left":
-                half[:, w // 2:] = True
+                half[:, w // 2 :] = True
             else:
                 half[:, : w // 2] = True
             ch &= half
@@ -332,7 +373,9 @@ def regions_from_motion(mesh: Mesh, camera: Camera, renderer, shapes: dict[str, 
             m = eye_region(shapes["blink"], side)
         if m.sum() < 4:
             raise UserError(f"the {role} shape changes nothing visible from the front; use --override JSON")
-        regions[region] = Region(m, mesh.vertices, "outside", _eyeball(mesh, camera, renderer, m, shapes.get(role, shapes.get("blink"))))
+        regions[region] = Region(
+            m, mesh.vertices, "outside", _eyeball(mesh, camera, renderer, m, shapes.get(role, shapes.get("blink")))
+        )
     opened = scaled(shapes["mouth_open"])
     res_open = renderer.render(mesh, camera, vertices=opened)
     # The opening: pixels of the open pose showing surface hidden at rest (the mouth interior,
@@ -406,7 +449,9 @@ def regions_from_image(mesh: Mesh, camera: Camera, renderer, segmenter) -> dict[
     for name in REGIONS:
         m = largest_component(np.asarray(masks[name], bool))
         if m.sum() < 4:
-            raise UserError(f"Grounding-DINO + SAM found no {name.replace('_', ' ')} on the frontal render; use --override JSON")
+            raise UserError(
+                f"Grounding-DINO + SAM found no {name.replace('_', ' ')} on the frontal render; use --override JSON"
+            )
         eyeball = None
         if name != "mouth":
             eyeball = _eyeball(mesh, camera, renderer, m, None)
@@ -418,18 +463,22 @@ def regions_from_image(mesh: Mesh, camera: Camera, renderer, segmenter) -> dict[
 # Driver
 # ----------------------------------------------------------------------------------------------
 
+
 def choose_backend(mesh: Mesh, model=None) -> str:
     if has_part_labels(mesh):
         return "parts"
     shapes = motion_shapes(mesh, model)
     if "mouth_open" in shapes and ({"blink_left", "blink_right"} <= set(shapes) or "blink" in shapes):
         return "motion"
-    raise UserError("character has no landmarks: no eye/mouth part labels and no blink / mouth-open shapes; "
-                    "run `t2bs landmarks DIR --backend grounding-sam` (needs local checkpoints) or pass --override JSON")
+    raise UserError(
+        "character has no landmarks: no eye/mouth part labels and no blink / mouth-open shapes; "
+        "run `t2bs landmarks DIR --backend grounding-sam` (needs local checkpoints) or pass --override JSON"
+    )
 
 
-def detect_landmarks(mesh: Mesh, backend: str = "auto", model=None, size: int = 512, renderer=None,
-                     segmenter=None) -> tuple[Landmarks, dict[str, Region]]:
+def detect_landmarks(
+    mesh: Mesh, backend: str = "auto", model=None, size: int = 512, renderer=None, segmenter=None
+) -> tuple[Landmarks, dict[str, Region]]:
     """Character mesh (canonical frame) -> 20 landmarks and the regions they came from."""
     from t2bs.render.mesh_renderer import MeshRenderer
 
@@ -461,8 +510,11 @@ def detect_landmarks(mesh: Mesh, backend: str = "auto", model=None, size: int = 
             vis = renderer.vertex_visibility(mesh, camera, vertices=reg.vertices)
             ids.append(lift_points(p2, camera, reg.vertices, vis, reg.mask, reg.lift, reg.lift_vertices))
             pts.append(p2)
-        eyeballs = {side: np.nonzero(regions[f"{side}_eye"].eyeball)[0] for side in ("left", "right")
-                    if regions[f"{side}_eye"].eyeball is not None}
+        eyeballs = {
+            side: np.nonzero(regions[f"{side}_eye"].eyeball)[0]
+            for side in ("left", "right")
+            if regions[f"{side}_eye"].eyeball is not None
+        }
         info["mouth"]["width_world"] = float(abs(mesh.vertices[ids[2][4], 0] - mesh.vertices[ids[2][0], 0]))
         if backend == "motion":
             smile = motion_shapes(mesh, model).get("smile")
@@ -472,7 +524,9 @@ def detect_landmarks(mesh: Mesh, backend: str = "auto", model=None, size: int = 
         if own:
             renderer.release()
     vid = np.concatenate(ids)
-    return Landmarks(vid, np.concatenate(pts), mesh.vertices[vid].astype(np.float64), camera, backend, eyeballs, info), regions
+    return Landmarks(
+        vid, np.concatenate(pts), mesh.vertices[vid].astype(np.float64), camera, backend, eyeballs, info
+    ), regions
 
 
 def landmarks_from_override(data: dict, mesh: Mesh, size: int = 512) -> Landmarks:
@@ -495,7 +549,7 @@ def landmarks_from_override(data: dict, mesh: Mesh, size: int = 512) -> Landmark
             vis = r.vertex_visibility(mesh, camera)
         ids = lift_points(p2, camera, mesh.vertices, vis, np.zeros((camera.height, camera.width), bool), "outside")
         return Landmarks(ids, p2, mesh.vertices[ids].astype(np.float64), camera, "override")
-    raise UserError("override JSON needs \"vertex_ids\" (20 ints) or \"points2d\" (20 [x, y] pixel pairs)")
+    raise UserError('override JSON needs "vertex_ids" (20 ints) or "points2d" (20 [x, y] pixel pairs)')
 
 
 def overlay_image(mesh: Mesh, lm: Landmarks, regions: dict[str, Region] | None = None, renderer=None) -> np.ndarray:
@@ -522,3 +576,46 @@ def overlay_image(mesh: Mesh, lm: Landmarks, regions: dict[str, Region] | None =
         out = draw_points(out, lm.points2d[sl], color=(255, 255, 0), radius=1)
         out = draw_points(out, proj[sl], color=colours[name], radius=2)
     return out
+
+
+def find_project_landmarks(
+    project: Project, mesh: Mesh, model=None, backend: str = "auto", override: Path | None = None, show: bool = False
+) -> Landmarks:
+    """A project's 20 landmarks -> ``landmarks/landmarks.json`` (+ ``landmarks/overlay.png`` with ``show``),
+    recorded in the manifest as the "landmarks" stage.
+
+    ``mesh``: the project's character (canonical frame). ``model``: the character's blendshape rig, or None;
+    anything with ``neutral`` [N, 3], ``num_vertices`` and the named shapes ``semantic_names`` /
+    ``semantic_offsets()`` (a ``t2bs.blendshapes`` model; passed in by the caller so that this layer never
+    loads one). When it fits the mesh, the landmarks are found on its neutral, and the ``motion`` backend may
+    use its named blink / mouth-open shapes. The landmarks come from, in this order: the user's ``override``
+    JSON ({"vertex_ids": [20]} or {"points2d": [[x, y] x 20]}); the auto rig's own 20
+    (``character/autorig.json``, when ``backend`` is "auto"); else ``detect_landmarks``.
+    UserError: a missing or broken override file, a character without eyes / mouth to find."""
+    if model is not None and model.num_vertices == mesh.num_vertices:
+        mesh = mesh.with_vertices(model.neutral)
+    regions = None
+    if override is not None:
+        if not Path(override).exists():
+            raise UserError(f"override file {override} does not exist")
+        try:
+            data = json.loads(Path(override).read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError(f"override file {override} is not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        lm = landmarks_from_override(data, mesh)
+    elif backend == "auto" and project.path("character", "autorig.json").exists():
+        # The motion came from the auto rig (issue 34): its 20 landmarks are this character's, in the
+        # same 68-point order, found before any shape existed.
+        ids = read_json(project.path("character", "autorig.json"))["landmarks"]["vertex_ids"]
+        lm = landmarks_from_override({"vertex_ids": ids}, mesh)
+        lm.backend = "autorig"
+    else:
+        lm, regions = detect_landmarks(mesh, backend, model=model)
+    out = project.path("landmarks")
+    write_json(out / "landmarks.json", lm.to_dict())
+    if show:
+        write_image(out / "overlay.png", overlay_image(mesh, lm, regions))
+    project.record_stage(
+        "landmarks", backend=lm.backend, config={"backend": backend, "override": str(override) if override else None}
+    )
+    return lm

@@ -28,15 +28,60 @@ HEAD_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll")
 EYE_COLUMNS = ("LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll", "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
 # Live Link Face's own column order (the 61 values it streams).
 LIVE_LINK_ORDER = [
-    "EyeBlinkLeft", "EyeLookDownLeft", "EyeLookInLeft", "EyeLookOutLeft", "EyeLookUpLeft", "EyeSquintLeft", "EyeWideLeft",
-    "EyeBlinkRight", "EyeLookDownRight", "EyeLookInRight", "EyeLookOutRight", "EyeLookUpRight", "EyeSquintRight",
-    "EyeWideRight", "JawForward", "JawRight", "JawLeft", "JawOpen", "MouthClose", "MouthFunnel", "MouthPucker",
-    "MouthRight", "MouthLeft", "MouthSmileLeft", "MouthSmileRight", "MouthFrownLeft", "MouthFrownRight",
-    "MouthDimpleLeft", "MouthDimpleRight", "MouthStretchLeft", "MouthStretchRight", "MouthRollLower", "MouthRollUpper",
-    "MouthShrugLower", "MouthShrugUpper", "MouthPressLeft", "MouthPressRight", "MouthLowerDownLeft",
-    "MouthLowerDownRight", "MouthUpperUpLeft", "MouthUpperUpRight", "BrowDownLeft", "BrowDownRight", "BrowInnerUp",
-    "BrowOuterUpLeft", "BrowOuterUpRight", "CheekPuff", "CheekSquintLeft", "CheekSquintRight", "NoseSneerLeft",
-    "NoseSneerRight", "TongueOut", *HEAD_COLUMNS, *EYE_COLUMNS,
+    "EyeBlinkLeft",
+    "EyeLookDownLeft",
+    "EyeLookInLeft",
+    "EyeLookOutLeft",
+    "EyeLookUpLeft",
+    "EyeSquintLeft",
+    "EyeWideLeft",
+    "EyeBlinkRight",
+    "EyeLookDownRight",
+    "EyeLookInRight",
+    "EyeLookOutRight",
+    "EyeLookUpRight",
+    "EyeSquintRight",
+    "EyeWideRight",
+    "JawForward",
+    "JawRight",
+    "JawLeft",
+    "JawOpen",
+    "MouthClose",
+    "MouthFunnel",
+    "MouthPucker",
+    "MouthRight",
+    "MouthLeft",
+    "MouthSmileLeft",
+    "MouthSmileRight",
+    "MouthFrownLeft",
+    "MouthFrownRight",
+    "MouthDimpleLeft",
+    "MouthDimpleRight",
+    "MouthStretchLeft",
+    "MouthStretchRight",
+    "MouthRollLower",
+    "MouthRollUpper",
+    "MouthShrugLower",
+    "MouthShrugUpper",
+    "MouthPressLeft",
+    "MouthPressRight",
+    "MouthLowerDownLeft",
+    "MouthLowerDownRight",
+    "MouthUpperUpLeft",
+    "MouthUpperUpRight",
+    "BrowDownLeft",
+    "BrowDownRight",
+    "BrowInnerUp",
+    "BrowOuterUpLeft",
+    "BrowOuterUpRight",
+    "CheekPuff",
+    "CheekSquintLeft",
+    "CheekSquintRight",
+    "NoseSneerLeft",
+    "NoseSneerRight",
+    "TongueOut",
+    *HEAD_COLUMNS,
+    *EYE_COLUMNS,
 ]
 _TIMECODE = re.compile(r"^(\d+):(\d{2}):(\d{2})[:;](\d+)(?:\.(\d+))?$")
 STANDARD_RATES = (24, 25, 30, 48, 50, 60, 120)
@@ -51,7 +96,7 @@ class LiveLinkCapture:
 
 
 def parse_timecode(text: str) -> tuple[float, int, float]:
-    """"HH:MM:SS:FF.fff" -> (seconds of the whole-second part, frame number, fraction of a frame)."""
+    """ "HH:MM:SS:FF.fff" -> (seconds of the whole-second part, frame number, fraction of a frame)."""
     m = _TIMECODE.match(text.strip())
     if m is None:
         raise ValueError(text)
@@ -124,8 +169,9 @@ def head_rotations(head: np.ndarray) -> np.ndarray:
     return Rotation.from_euler("YXZ", h, degrees=False).as_matrix()
 
 
-def write_livelink_csv(path: str | Path, weights: dict, times: np.ndarray, head: np.ndarray | None = None,
-                       start: str = "16:20:00") -> Path:
+def write_livelink_csv(
+    path: str | Path, weights: dict, times: np.ndarray, head: np.ndarray | None = None, start: str = "16:20:00"
+) -> Path:
     """A Live Link Face style CSV (the app's header and column order) from weights name -> [T]."""
     from t2bs.project import atomic_path
 

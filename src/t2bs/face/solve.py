@@ -43,8 +43,16 @@ class SolveConfig:
 class RetargetSolver:
     """Precomputed linear pieces of the objective for one model + landmark set (state: caches)."""
 
-    def __init__(self, neutral: np.ndarray, basis: np.ndarray, faces: np.ndarray, landmark_ids: np.ndarray,
-                 eyeballs: dict | None = None, config: SolveConfig = SolveConfig(), prior: np.ndarray | None = None):
+    def __init__(
+        self,
+        neutral: np.ndarray,
+        basis: np.ndarray,
+        faces: np.ndarray,
+        landmark_ids: np.ndarray,
+        eyeballs: dict | None = None,
+        config: SolveConfig = SolveConfig(),
+        prior: np.ndarray | None = None,
+    ):
         self.config = config
         # [K] relative ridge per weight (default 1 = plain Tikhonov); e.g. (s_0 / s_k)^2 makes
         # components the captures rarely use expensive (a Gaussian prior from the PCA).
@@ -77,7 +85,9 @@ class RetargetSolver:
         slot[self._active_v] = np.arange(len(self._active_v))
         rows = np.concatenate([slot[ea[:, 0]], slot[ea[:, 1]]])
         cols = np.concatenate([np.arange(len(ea))] * 2)
-        self._inc = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(self._active_v), len(ea)))  # [A, Em]
+        self._inc = sparse.csr_matrix(
+            (np.ones(len(rows)), (rows, cols)), shape=(len(self._active_v), len(ea))
+        )  # [A, Em]
         # Static edges next to an active vertex still add their rest covariance to its sum.
         static = ~moving
         ei = self.edges[static]

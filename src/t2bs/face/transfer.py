@@ -51,8 +51,12 @@ def region_sizes(points: np.ndarray, y_up: bool) -> dict:
     return out
 
 
-def transfer_motion(track: FaceTrack, char_neutral: np.ndarray, config: TransferConfig = TransferConfig(),
-                    mouth_width: float | None = None) -> Transfer:
+def transfer_motion(
+    track: FaceTrack,
+    char_neutral: np.ndarray,
+    config: TransferConfig = TransferConfig(),
+    mouth_width: float | None = None,
+) -> Transfer:
     """Human track + character neutral landmark positions [20, 3] (world) -> Transfer.
 
     ``mouth_width``: the character mouth width the motion is scaled to (world units); default the

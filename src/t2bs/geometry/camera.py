@@ -65,11 +65,23 @@ class Camera:
         return view, proj
 
     def to_dict(self) -> dict:
-        return {"K": self.K.tolist(), "world_to_camera": self.world_to_camera.tolist(), "width": self.width, "height": self.height, "name": self.name}
+        return {
+            "K": self.K.tolist(),
+            "world_to_camera": self.world_to_camera.tolist(),
+            "width": self.width,
+            "height": self.height,
+            "name": self.name,
+        }
 
     @staticmethod
     def from_dict(d: dict) -> "Camera":
-        return Camera(np.asarray(d["K"], float), np.asarray(d["world_to_camera"], float), int(d["width"]), int(d["height"]), d.get("name", ""))
+        return Camera(
+            np.asarray(d["K"], float),
+            np.asarray(d["world_to_camera"], float),
+            int(d["width"]),
+            int(d["height"]),
+            d.get("name", ""),
+        )
 
 
 def intrinsics(width: int, height: int, fov_y_deg: float) -> np.ndarray:
@@ -78,7 +90,9 @@ def intrinsics(width: int, height: int, fov_y_deg: float) -> np.ndarray:
     return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
 
 
-def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3), up: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
+def look_at(
+    eye: np.ndarray, target: np.ndarray = np.zeros(3), up: np.ndarray = np.array([0.0, 1.0, 0.0])
+) -> np.ndarray:
     """[4, 4] OpenCV world->camera matrix for a camera at ``eye`` looking at ``target``."""
     eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
     z = target - eye
@@ -94,8 +108,14 @@ def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3), up: np.ndarray = 
     return m
 
 
-def orbit_camera(azimuth_deg: float, elevation_deg: float = ORBIT_ELEVATION, distance: float = ORBIT_DISTANCE,
-                 size: int = IMAGE_SIZE, fov_y_deg: float = ORBIT_FOV_Y, name: str = "") -> Camera:
+def orbit_camera(
+    azimuth_deg: float,
+    elevation_deg: float = ORBIT_ELEVATION,
+    distance: float = ORBIT_DISTANCE,
+    size: int = IMAGE_SIZE,
+    fov_y_deg: float = ORBIT_FOV_Y,
+    name: str = "",
+) -> Camera:
     """A camera on a sphere around the origin; azimuth 0 is in front of the character (+Z)."""
     az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
     eye = distance * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
@@ -107,10 +127,19 @@ def orbit_azimuths(views: int = ORBIT_VIEWS, azimuth_range: tuple[float, float] 
     return np.linspace(azimuth_range[0], azimuth_range[1], views)
 
 
-def orbit_cameras(views: int = ORBIT_VIEWS, size: int = IMAGE_SIZE, azimuth_range: tuple[float, float] = ORBIT_AZIMUTH_RANGE,
-                  elevation_deg: float = ORBIT_ELEVATION, distance: float = ORBIT_DISTANCE, fov_y_deg: float = ORBIT_FOV_Y) -> list[Camera]:
+def orbit_cameras(
+    views: int = ORBIT_VIEWS,
+    size: int = IMAGE_SIZE,
+    azimuth_range: tuple[float, float] = ORBIT_AZIMUTH_RANGE,
+    elevation_deg: float = ORBIT_ELEVATION,
+    distance: float = ORBIT_DISTANCE,
+    fov_y_deg: float = ORBIT_FOV_Y,
+) -> list[Camera]:
     """The paper's fixed-time orbit: ``views`` cameras over ``azimuth_range`` (ascending azimuth)."""
-    return [orbit_camera(a, elevation_deg, distance, size, fov_y_deg, name=f"view{i:02d}") for i, a in enumerate(orbit_azimuths(views, azimuth_range))]
+    return [
+        orbit_camera(a, elevation_deg, distance, size, fov_y_deg, name=f"view{i:02d}")
+        for i, a in enumerate(orbit_azimuths(views, azimuth_range))
+    ]
 
 
 def canonical_view_index(views: int = ORBIT_VIEWS, azimuth_range: tuple[float, float] = ORBIT_AZIMUTH_RANGE) -> int:
@@ -118,7 +147,11 @@ def canonical_view_index(views: int = ORBIT_VIEWS, azimuth_range: tuple[float, f
     return int(np.argmin(np.abs(orbit_azimuths(views, azimuth_range))))
 
 
-def frontal_camera(size: int = IMAGE_SIZE, elevation_deg: float = ORBIT_ELEVATION, distance: float = ORBIT_DISTANCE,
-                   fov_y_deg: float = ORBIT_FOV_Y) -> Camera:
+def frontal_camera(
+    size: int = IMAGE_SIZE,
+    elevation_deg: float = ORBIT_ELEVATION,
+    distance: float = ORBIT_DISTANCE,
+    fov_y_deg: float = ORBIT_FOV_Y,
+) -> Camera:
     """The canonical frontal view (azimuth 0), identical to the orbit's middle view."""
     return orbit_camera(0.0, elevation_deg, distance, size, fov_y_deg, name="front")

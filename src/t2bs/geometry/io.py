@@ -83,11 +83,13 @@ def check_mesh_size(vertices: int, faces: int, source: str) -> None:
         except ValueError:
             raise UserError(f"T2BS_MAX_{name}={raw!r} is not a whole number") from None
     if vertices > limits["VERTICES"] or faces > limits["FACES"]:
-        raise UserError(f"{source}: mesh has {vertices:,} vertices and {faces:,} faces, over the limit of "
-                        f"{limits['VERTICES']:,} vertices / {limits['FACES']:,} faces; decimate it first (Blender: "
-                        f"Decimate modifier; Python: `pip install fast-simplification` then trimesh's "
-                        f"mesh.simplify_quadric_decimation(face_count={limits['FACES'] // 2})) or raise "
-                        f"T2BS_MAX_VERTICES / T2BS_MAX_FACES")
+        raise UserError(
+            f"{source}: mesh has {vertices:,} vertices and {faces:,} faces, over the limit of "
+            f"{limits['VERTICES']:,} vertices / {limits['FACES']:,} faces; decimate it first (Blender: "
+            f"Decimate modifier; Python: `pip install fast-simplification` then trimesh's "
+            f"mesh.simplify_quadric_decimation(face_count={limits['FACES'] // 2})) or raise "
+            f"T2BS_MAX_VERTICES / T2BS_MAX_FACES"
+        )
 
 
 # ---------------------------------------------------------------------------------- glTF read
@@ -119,7 +121,9 @@ def _load_gltf(path: Path) -> Mesh:
     except (IndexError, KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
         # The file is untrusted input: any index or field the checks below do not name still ends
         # as one line (exc names what numpy/pygltflib tripped over), never a traceback.
-        raise UserError(f"{path}: malformed glTF ({type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else 'bad field'})") from None
+        raise UserError(
+            f"{path}: malformed glTF ({type(exc).__name__}: {str(exc).splitlines()[0][:160] if str(exc) else 'bad field'})"
+        ) from None
 
 
 class _MalformedGltf(Exception):
@@ -246,7 +250,9 @@ def _read_beside(path: Path, uri: str, what: str) -> bytes:
 def _read_accessor(gltf: pygltflib.GLTF2, buffers: list[bytes], index: int) -> np.ndarray:
     acc = _index(gltf.accessors, index, "accessor")
     if acc.componentType not in _COMPONENT_DTYPES:
-        raise _MalformedGltf(f"accessor {index} has componentType {acc.componentType!r} (valid: {sorted(_COMPONENT_DTYPES)})")
+        raise _MalformedGltf(
+            f"accessor {index} has componentType {acc.componentType!r} (valid: {sorted(_COMPONENT_DTYPES)})"
+        )
     if acc.type not in _TYPE_SIZES:
         raise _MalformedGltf(f"accessor {index} has type {acc.type!r} (valid: {', '.join(_TYPE_SIZES)})")
     if not isinstance(acc.count, int) or acc.count < 0 or acc.count > MAX_ACCESSOR_COUNT:
@@ -264,8 +270,10 @@ def _read_accessor(gltf: pygltflib.GLTF2, buffers: list[bytes], index: int) -> n
         end = start + (stride * (acc.count - 1) + item if acc.count else 0)
         view_end = (view.byteOffset or 0) + (view.byteLength or 0)
         if start < 0 or stride < item or end > min(len(data), view_end):
-            raise _MalformedGltf(f"accessor {index} reads bytes {start}..{end} but its buffer view / buffer ends at "
-                                 f"{min(len(data), view_end)} (truncated buffer?)")
+            raise _MalformedGltf(
+                f"accessor {index} reads bytes {start}..{end} but its buffer view / buffer ends at "
+                f"{min(len(data), view_end)} (truncated buffer?)"
+            )
         if stride == item:
             out = np.frombuffer(data, dtype=dtype, count=acc.count * width, offset=start).reshape(acc.count, width)
         else:
@@ -277,12 +285,17 @@ def _read_accessor(gltf: pygltflib.GLTF2, buffers: list[bytes], index: int) -> n
         sp = acc.sparse
         iv = gltf.bufferViews[sp.indices.bufferView]
         idx = np.frombuffer(
-            buffers[iv.buffer], dtype=_COMPONENT_DTYPES[sp.indices.componentType], count=sp.count,
+            buffers[iv.buffer],
+            dtype=_COMPONENT_DTYPES[sp.indices.componentType],
+            count=sp.count,
             offset=(iv.byteOffset or 0) + (sp.indices.byteOffset or 0),
         )
         vv = gltf.bufferViews[sp.values.bufferView]
         vals = np.frombuffer(
-            buffers[vv.buffer], dtype=dtype, count=sp.count * width, offset=(vv.byteOffset or 0) + (sp.values.byteOffset or 0)
+            buffers[vv.buffer],
+            dtype=dtype,
+            count=sp.count * width,
+            offset=(vv.byteOffset or 0) + (sp.values.byteOffset or 0),
         ).reshape(sp.count, width)
         out[idx.astype(np.int64)] = vals
     if acc.normalized and np.issubdtype(dtype, np.integer):
@@ -298,8 +311,10 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
     if prim.indices is not None:
         idx = _read_accessor(gltf, buffers, prim.indices)
         if idx.shape[1] != 1 or not np.issubdtype(idx.dtype, np.integer) or len(idx) % 3:
-            raise _MalformedGltf(f"triangle indices must be an integer SCALAR accessor with a multiple of 3 entries, "
-                                 f"got {len(idx)} x {idx.shape[1]} {idx.dtype}")
+            raise _MalformedGltf(
+                f"triangle indices must be an integer SCALAR accessor with a multiple of 3 entries, "
+                f"got {len(idx)} x {idx.shape[1]} {idx.dtype}"
+            )
         faces = idx.reshape(-1, 3).astype(np.int64)
     else:
         if len(pos) % 3:
@@ -313,7 +328,9 @@ def _read_primitive(gltf, buffers, prim, target_names, world: np.ndarray, path: 
     for t_index, target in enumerate(prim.targets or []):
         name = target_names[t_index] if t_index < len(target_names) else f"target_{t_index}"
         if "POSITION" in target and target["POSITION"] is not None:
-            morphs[name] = (_read_accessor(gltf, buffers, target["POSITION"]).astype(np.float64) @ linear.T).astype(np.float32)
+            morphs[name] = (_read_accessor(gltf, buffers, target["POSITION"]).astype(np.float64) @ linear.T).astype(
+                np.float32
+            )
     colors = uv = texture = None
     factor = np.ones(3)
     if prim.material is not None:
@@ -395,12 +412,23 @@ def save_mesh(mesh: Mesh, path: str | os.PathLike, animation: dict | None = None
     suffix = path.suffix.lower()
     with atomic_path(path) as tmp:
         if suffix == ".glb":
-            _to_gltf(mesh, animation).save_binary(str(tmp))
+            Path(tmp).write_bytes(glb_bytes(mesh, animation))
         elif suffix == ".ply":
             _save_ply(mesh, tmp)
         else:
             raise UserError(f"{path}: can only save .glb or .ply")
     return path
+
+
+def glb_bytes(mesh: Mesh, animation: dict | None = None, roughness: float = 1.0) -> bytes:
+    """``mesh`` as a binary glTF (.glb) in memory: the bytes ``save_mesh`` writes to a .glb file.
+
+    One primitive: POSITION, NORMAL, COLOR_0 (linear RGBA) or TEXCOORD_0 + an embedded PNG, the
+    morph targets in ``mesh.morph_targets`` order (names in mesh.extras.targetNames), part labels,
+    and ``animation`` as in ``save_mesh``. ``roughness``: the material's roughnessFactor (not metallic,
+    double-sided). The viewer sends these bytes to the browser (three.js GLTFLoader) on every pose.
+    """
+    return b"".join(_to_gltf(mesh, animation, roughness).save_to_bytes())
 
 
 def _save_ply(mesh: Mesh, path: Path) -> None:
@@ -441,17 +469,23 @@ class _BinaryBuilder:
         return len(self.gltf.accessors) - 1
 
 
-def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
+def _to_gltf(mesh: Mesh, animation: dict | None, roughness: float = 1.0) -> pygltflib.GLTF2:
     from t2bs.geometry.mesh import vertex_normals
 
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator="t2bs", version="2.0"))
     gltf.bufferViews, gltf.accessors = [], []
     b = _BinaryBuilder(gltf)
+    n0 = vertex_normals(mesh.vertices, mesh.faces)
     attrs = pygltflib.Attributes(
         POSITION=b.accessor(mesh.vertices.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
-        NORMAL=b.accessor(vertex_normals(mesh.vertices, mesh.faces).astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER),
+        NORMAL=b.accessor(n0.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER),
     )
-    material = pygltflib.Material(name="character", doubleSided=True, pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(metallicFactor=0.0, roughnessFactor=1.0))
+    # Double-sided: generated characters often have open boundaries (mouth interior, eyelids).
+    material = pygltflib.Material(
+        name="character",
+        doubleSided=True,
+        pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(metallicFactor=0.0, roughnessFactor=float(roughness)),
+    )
     if mesh.texture is not None and mesh.uv is not None:
         attrs.TEXCOORD_0 = b.accessor(mesh.uv.astype(np.float32), "VEC2", pygltflib.ARRAY_BUFFER)
         png = io.BytesIO()
@@ -466,23 +500,28 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
     # Normal deltas: without them a consumer lights every pose with the neutral's normals (an open
     # jaw or a closed lid keeps the neutral shading). Delta = normals of the fully applied target
     # minus the neutral's; consumers renormalise after blending.
-    n0 = vertex_normals(mesh.vertices, mesh.faces)
     targets = [
-        {"POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
-         "NORMAL": b.accessor((vertex_normals(mesh.vertices + d, mesh.faces) - n0).astype(np.float32), "VEC3",
-                              pygltflib.ARRAY_BUFFER)}
+        {
+            "POSITION": b.accessor(d.astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER, bounds=True),
+            "NORMAL": b.accessor(
+                (vertex_normals(mesh.vertices + d, mesh.faces) - n0).astype(np.float32), "VEC3", pygltflib.ARRAY_BUFFER
+            ),
+        }
         for d in mesh.morph_targets.values()
     ]
     prim = pygltflib.Primitive(
         attributes=attrs,
         indices=b.accessor(mesh.faces.astype(np.uint32).reshape(-1), "SCALAR", pygltflib.ELEMENT_ARRAY_BUFFER),
-        material=0, targets=targets or None,
+        material=0,
+        targets=targets or None,
     )
     extras = {"targetNames": mesh.morph_names} if targets else {}
     if mesh.part_ids is not None:
         extras["partNames"] = mesh.part_names
         prim.attributes._PART_ID = b.accessor(mesh.part_ids.astype(np.float32), "SCALAR", pygltflib.ARRAY_BUFFER)
-    gmesh = pygltflib.Mesh(name="character", primitives=[prim], extras=extras, weights=[0.0] * len(targets) if targets else None)
+    gmesh = pygltflib.Mesh(
+        name="character", primitives=[prim], extras=extras, weights=[0.0] * len(targets) if targets else None
+    )
     gltf.meshes = [gmesh]
     gltf.materials = [material]
     gltf.nodes = [pygltflib.Node(name="character", mesh=0)]
@@ -496,17 +535,28 @@ def _to_gltf(mesh: Mesh, animation: dict | None) -> pygltflib.GLTF2:
         t_acc = b.accessor(times, "SCALAR", bounds=True)
         w_acc = b.accessor(weights.reshape(-1), "SCALAR")
         samplers = [pygltflib.AnimationSampler(input=t_acc, output=w_acc, interpolation="LINEAR")]
-        channels = [pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))]
+        channels = [
+            pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))
+        ]
         for key, kind in (("rotation", "VEC4"), ("translation", "VEC3")):
             if animation.get(key) is None:
                 continue
             values = np.asarray(animation[key], dtype=np.float32)
             if values.shape != (len(times), 4 if kind == "VEC4" else 3):
-                raise ValueError(f"animation {key} must be [T={len(times)}, {4 if kind == 'VEC4' else 3}], got {values.shape}")
-            samplers.append(pygltflib.AnimationSampler(input=t_acc, output=b.accessor(values, kind), interpolation="LINEAR"))
-            channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1,
-                                                       target=pygltflib.AnimationChannelTarget(node=0, path=key)))
-        gltf.animations = [pygltflib.Animation(name=animation.get("name", "capture"), samplers=samplers, channels=channels)]
+                raise ValueError(
+                    f"animation {key} must be [T={len(times)}, {4 if kind == 'VEC4' else 3}], got {values.shape}"
+                )
+            samplers.append(
+                pygltflib.AnimationSampler(input=t_acc, output=b.accessor(values, kind), interpolation="LINEAR")
+            )
+            channels.append(
+                pygltflib.AnimationChannel(
+                    sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(node=0, path=key)
+                )
+            )
+        gltf.animations = [
+            pygltflib.Animation(name=animation.get("name", "capture"), samplers=samplers, channels=channels)
+        ]
     gltf.buffers = [pygltflib.Buffer(byteLength=len(b.blob))]
     gltf.set_binary_blob(bytes(b.blob))
     return gltf

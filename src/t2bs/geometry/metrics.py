@@ -74,15 +74,25 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(_ssim(a, b, data_range=1.0, size_average=True, win_size=win))
 
 
-def geometry_metrics(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, faces: np.ndarray,
-                     fraction: float = 0.005, seen: np.ndarray | None = None) -> dict:
+def geometry_metrics(
+    pred: np.ndarray,
+    gt: np.ndarray,
+    rest: np.ndarray,
+    faces: np.ndarray,
+    fraction: float = 0.005,
+    seen: np.ndarray | None = None,
+) -> dict:
     """p2p_all, p2p_moving, nc for pred/gt [T, N, 3] against the rest pose [N, 3]; with ``seen``
     [N] bool also p2p_seen (moving pairs of seen vertices) and seen_fraction (their share of the
     moving pairs)."""
     diag = bbox_diagonal(rest)
     mask = moving_mask(gt, rest, fraction, diag)
-    out = {"p2p_all": p2p(pred, gt, diag), "p2p_moving": p2p(pred, gt, diag, mask),
-           "nc": normal_consistency(pred, gt, faces), "moving_fraction": float(mask.mean())}
+    out = {
+        "p2p_all": p2p(pred, gt, diag),
+        "p2p_moving": p2p(pred, gt, diag, mask),
+        "nc": normal_consistency(pred, gt, faces),
+        "moving_fraction": float(mask.mean()),
+    }
     if seen is not None:
         seen_moving = mask & np.asarray(seen, bool)[None]
         out["p2p_seen"] = p2p(pred, gt, diag, seen_moving)
@@ -90,8 +100,9 @@ def geometry_metrics(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, faces: 
     return out
 
 
-def expression_metrics(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, fraction: float = 0.005,
-                       diagonal: float | None = None) -> dict:
+def expression_metrics(
+    pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, fraction: float = 0.005, diagonal: float | None = None
+) -> dict:
     """The expression recovered, with each frame's head motion taken out of both sides.
 
     pred, gt [T, N, 3]: reconstruction and truth; rest [N, 3] the neutral. Per frame, the dominant rigid motion of
@@ -117,12 +128,24 @@ def expression_metrics(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, fract
     mask = np.linalg.norm(e_gt, axis=-1) > fraction * d  # [T, N]
     if not mask.any():
         nan = float("nan")
-        return {"expr_p2p": nan, "expr_rigid": nan, "expr_ratio": nan, "recovered": nan, "cosine": nan,
-                "expr_fraction": 0.0}
+        return {
+            "expr_p2p": nan,
+            "expr_rigid": nan,
+            "expr_ratio": nan,
+            "recovered": nan,
+            "cosine": nan,
+            "expr_fraction": 0.0,
+        }
     a, b = e_pred[mask], e_gt[mask]  # [M, 3]
     err = float(np.linalg.norm(a - b, axis=-1).mean() / d)
     rigid = float(np.linalg.norm(b, axis=-1).mean() / d)
     na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
-    return {"expr_p2p": err, "expr_rigid": rigid, "expr_ratio": err / rigid, "recovered": na / nb,
-            # below 1e-4 of the true motion, what is left is float32 rounding of a rigid motion: no direction
-            "cosine": float((a * b).sum() / (na * nb)) if na > 1e-4 * nb else 0.0, "expr_fraction": float(mask.mean())}
+    return {
+        "expr_p2p": err,
+        "expr_rigid": rigid,
+        "expr_ratio": err / rigid,
+        "recovered": na / nb,
+        # below 1e-4 of the true motion, what is left is float32 rounding of a rigid motion: no direction
+        "cosine": float((a * b).sum() / (na * nb)) if na > 1e-4 * nb else 0.0,
+        "expr_fraction": float(mask.mean()),
+    }

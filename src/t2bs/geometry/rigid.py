@@ -46,8 +46,9 @@ def remove_motion(rotations: np.ndarray, translations: np.ndarray, vertices: np.
     return np.einsum("tji,tnj->tni", rotations, np.asarray(vertices, np.float64) - translations[:, None])
 
 
-def nonrigid_displacements(rest: np.ndarray, vertices: np.ndarray, iterations: int = 10
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nonrigid_displacements(
+    rest: np.ndarray, vertices: np.ndarray, iterations: int = 10
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split ``vertices`` [T, n, 3] into the dominant rigid motion and the rest:
     -> (displacements [T, n, 3] from ``rest`` [n, 3] in the head's frame, rotations [T, 3, 3], translations [T, 3]),
     so that vertices = apply_motion(R, t, rest + displacements) exactly."""

@@ -46,8 +46,11 @@ def farthest_point_sampling(points: np.ndarray, k: int, seed: int = 0, start: np
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     k = min(int(k), n)
-    chosen = list(np.asarray(start, dtype=np.int64)) if start is not None and len(start) else \
-        [int(np.random.default_rng(seed).integers(n))]
+    chosen = (
+        list(np.asarray(start, dtype=np.int64))
+        if start is not None and len(start)
+        else [int(np.random.default_rng(seed).integers(n))]
+    )
     dist = np.min([np.linalg.norm(pts - pts[c], axis=1) for c in chosen], axis=0)
     while len(chosen) < k:
         chosen.append(int(np.argmax(dist)))
@@ -71,7 +74,7 @@ def top_up_parts(vertices: np.ndarray, faces: np.ndarray, idx: np.ndarray, min_p
         if len(local) >= want:
             continue
         picked = farthest_point_sampling(v[members], want, seed=part, start=local)
-        added.append(members[picked[len(local):]])
+        added.append(members[picked[len(local) :]])
     return np.concatenate([np.asarray(idx, np.int64)] + added) if added else np.asarray(idx, np.int64)
 
 
@@ -96,9 +99,16 @@ def _surface_distances(vertices: np.ndarray, faces: np.ndarray | None, sources: 
     return np.where(np.isfinite(geo), np.maximum(geo, eucl), eucl + far)
 
 
-def build_control_points(vertices: np.ndarray, faces: np.ndarray | None = None, k: int = 400, knn: int = 10,
-                         cp_neighbours: int = 6, geodesic: bool = True, seed: int = 0,
-                         min_per_part: int = 0) -> ControlPoints:
+def build_control_points(
+    vertices: np.ndarray,
+    faces: np.ndarray | None = None,
+    k: int = 400,
+    knn: int = 10,
+    cp_neighbours: int = 6,
+    geodesic: bool = True,
+    seed: int = 0,
+    min_per_part: int = 0,
+) -> ControlPoints:
     """Farthest-point control points on ``vertices`` [N, 3] and fixed Mahalanobis LBS weights. ``min_per_part`` > 0
     (needs ``faces``) adds control points to the parts with fewer (``top_up_parts``), so there may be more than k."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -130,5 +140,7 @@ def build_control_points(vertices: np.ndarray, faces: np.ndarray | None = None, 
     w = 1.0 / (maha * np.maximum(ratio, 1.0) + 1e-6)
     w /= w.sum(1, keepdims=True)
     m = min(cp_neighbours, kk - 1)
-    cp_nb = np.argsort(dist[:, idx], axis=1)[:, 1:m + 1] if m > 0 else np.zeros((kk, 0), np.int64)
-    return ControlPoints(p.astype(np.float32), idx, nearest.astype(np.int64), w.astype(np.float32), cp_nb.astype(np.int64))
+    cp_nb = np.argsort(dist[:, idx], axis=1)[:, 1 : m + 1] if m > 0 else np.zeros((kk, 0), np.int64)
+    return ControlPoints(
+        p.astype(np.float32), idx, nearest.astype(np.int64), w.astype(np.float32), cp_nb.astype(np.int64)
+    )

@@ -76,13 +76,20 @@ class DeformMLP(nn.Module):
     canonical view or when view conditioning is off).
     """
 
-    def __init__(self, hidden: int, depth: int, pos_freqs: int, time_freqs: int, view_freqs: int,
-                 view_conditioned: bool, translation_scale: float = 0.1, anchor_first_frame: bool = True):
+    def __init__(
+        self,
+        hidden: int,
+        depth: int,
+        pos_freqs: int,
+        time_freqs: int,
+        view_freqs: int,
+        view_conditioned: bool,
+        translation_scale: float = 0.1,
+    ):
         super().__init__()
-        self.anchor = anchor_first_frame  # shared(p, t) - shared(p, 0): frame 0 is exactly the rest pose
         self.pos_freqs, self.time_freqs, self.view_freqs = pos_freqs, time_freqs, view_freqs
         self.view_conditioned = view_conditioned
-        self.residual_static = False  # set by VCDGSModel from config.view_residual_static
+        self.residual_static = False  # set by VCDGSModel from config.model.view_residual_static
         self.translation_scale = translation_scale  # outputs are O(1); scene motion is O(0.1)
         d_p, d_t, d_v = 3 * (1 + 2 * pos_freqs), 1 + 2 * time_freqs, 1 + 2 * view_freqs
         self.shared = CondMLP(d_p, d_t, 6, hidden, depth)
@@ -95,11 +102,9 @@ class DeformMLP(nn.Module):
         (rotvec, translation). No branch on tensor values (a batch of canonical views still runs the
         residual network, times 0): nothing waits for the device, and a compiled step is one graph."""
         te = fourier(t[:, None], self.time_freqs)  # [B, Dt]
-        if self.anchor:
-            both = self.shared(pe, torch.cat([te, fourier(t.new_zeros(1, 1), self.time_freqs)]))
-            shared = (both[:-1] - both[-1:]) * self.scale
-        else:
-            shared = self.shared(pe, te) * self.scale
+        # shared(p, t) - shared(p, 0): frame 0 is the static mesh (the grid's first column), exactly the rest pose
+        both = self.shared(pe, torch.cat([te, fourier(t.new_zeros(1, 1), self.time_freqs)]))
+        shared = (both[:-1] - both[-1:]) * self.scale
         if self.residual is None or view_on is None:
             return shared, torch.zeros_like(shared)
         ve = fourier(v[:, None], self.view_freqs)
@@ -125,18 +130,17 @@ class GlobalSE3(nn.Module):
     Adam's momentum keeps pushing unsampled rows, which makes the warm-up noisy).
     """
 
-    def __init__(self, views: int, frames: int, view_conditioned: bool, anchor_first_frame: bool = True):
+    def __init__(self, views: int, frames: int, view_conditioned: bool):
         super().__init__()
-        self.anchor = anchor_first_frame  # the shared motion of frame 0 is the identity
         self.register_buffer("basis", dct_basis(frames))  # [T, T] DCT-II, orthonormal
         self.shared = nn.Parameter(torch.zeros(frames, 6))  # [T coefficients, rotvec 3 + translation 3]
         self.residual = nn.Parameter(torch.zeros(views, frames, 6)) if view_conditioned else None
-        self.residual_static = False  # set by VCDGSModel from config.view_residual_static
+        self.residual_static = False  # set by VCDGSModel from config.model.view_residual_static
 
     def shared_table(self) -> torch.Tensor:
         """[T, 6] shared motion of every frame."""
         g = self.basis @ self.shared
-        return g - g[:1] if self.anchor else g
+        return g - g[:1]  # frame 0 is the static mesh (the grid's first column): its shared motion is the identity
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, view_on: torch.Tensor):
         """-> (shared [B, 6], residual [B, 6])."""
@@ -174,15 +178,34 @@ class VCDGSModel(nn.Module):
     """Static Gaussians + control points + the deformation networks; ``forward`` gives the
     Gaussians of a batch of (view, time) pairs."""
 
-    def __init__(self, means, quats, log_scales, colors, cp_positions, neighbours, weights, views: int, frames: int,
-                 canonical_view: int, cfg, faces=None, face_colors=None, face_log_scale=None):
+    def __init__(
+        self,
+        means,
+        quats,
+        log_scales,
+        colors,
+        cp_positions,
+        neighbours,
+        weights,
+        views: int,
+        frames: int,
+        canonical_view: int,
+        cfg,
+        faces=None,
+        face_colors=None,
+        face_log_scale=None,
+    ):
         super().__init__()
         f32 = torch.float32
         # Face Gaussians (gaussians.face_gaussians): rebuilt from the deformed vertices, rendered only.
         self.register_buffer("faces", None if faces is None else torch.as_tensor(faces, dtype=torch.int64))  # [F, 3]
-        self.register_buffer("face_colors", None if face_colors is None else torch.as_tensor(face_colors, dtype=f32))  # [F, 3]
-        self.register_buffer("face_log_scale", None if face_log_scale is None else torch.as_tensor(face_log_scale, dtype=f32))  # [F]
-        self.flatness = cfg.flatness
+        self.register_buffer(
+            "face_colors", None if face_colors is None else torch.as_tensor(face_colors, dtype=f32)
+        )  # [F, 3]
+        self.register_buffer(
+            "face_log_scale", None if face_log_scale is None else torch.as_tensor(face_log_scale, dtype=f32)
+        )  # [F]
+        self.flatness = cfg.static_fit.flatness
         self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
         self.register_buffer("quats", torch.as_tensor(quats, dtype=f32))  # [N, 4] XYZW
         self.register_buffer("log_scales", torch.as_tensor(log_scales, dtype=f32))  # [N, 3]
@@ -193,18 +216,40 @@ class VCDGSModel(nn.Module):
         # The same weights as a sparse [N, K] matrix: LBS as one sparse matmul (lbs.blend_matrix); rebuilt, not saved.
         self.register_buffer("blend", blend_matrix(self.neighbours, self.weights, len(self.cp)), persistent=False)
         self.views, self.frames, self.canonical_view = views, frames, canonical_view
-        self.use_view, self.use_refine, self.use_lbs, self.use_global = cfg.use_view, cfg.use_refine, cfg.use_lbs, cfg.use_global
-        self.deform = DeformMLP(cfg.hidden, cfg.depth, cfg.pos_freqs, cfg.time_freqs, cfg.view_freqs, cfg.use_view,
-                                anchor_first_frame=cfg.anchor_first_frame)
-        self.global_se3 = GlobalSE3(views, frames, cfg.use_view, cfg.anchor_first_frame) if cfg.use_global else None
-        self.deform.residual_static = bool(getattr(cfg, "view_residual_static", False))
+        self.use_view, self.use_refine, self.use_lbs, self.use_global = (
+            cfg.use_view,
+            cfg.use_refine,
+            cfg.use_lbs,
+            cfg.use_global,
+        )
+        self.deform = DeformMLP(
+            cfg.model.hidden,
+            cfg.model.depth,
+            cfg.model.pos_freqs,
+            cfg.model.time_freqs,
+            cfg.model.view_freqs,
+            cfg.use_view,
+        )
+        self.global_se3 = GlobalSE3(views, frames, cfg.use_view) if cfg.use_global else None
+        self.deform.residual_static = cfg.model.view_residual_static
         if self.global_se3 is not None:
             self.global_se3.residual_static = self.deform.residual_static
-        self.refine = RefineMLP(cfg.refine_hidden, cfg.refine_depth, cfg.refine_pos_freqs, cfg.time_freqs,
-                                cfg.view_freqs) if cfg.use_refine else None
+        self.refine = (
+            RefineMLP(
+                cfg.model.refine_hidden,
+                cfg.model.refine_depth,
+                cfg.model.refine_pos_freqs,
+                cfg.model.time_freqs,
+                cfg.model.view_freqs,
+            )
+            if cfg.use_refine
+            else None
+        )
         # Fourier features of the fixed points, computed once (positions never change).
-        self.register_buffer("pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.pos_freqs), persistent=False)
-        self.register_buffer("pe_means", fourier(self.means, cfg.refine_pos_freqs), persistent=False)
+        self.register_buffer(
+            "pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.model.pos_freqs), persistent=False
+        )
+        self.register_buffer("pe_means", fourier(self.means, cfg.model.refine_pos_freqs), persistent=False)
         self.radius = float(self.means.norm(dim=-1).mean())  # mean distance from the origin: rotation -> motion
 
     # -- encodings of the discrete view / time indices --
@@ -219,7 +264,9 @@ class VCDGSModel(nn.Module):
 
     def control_transforms(self, v_idx: torch.Tensor, t_idx: torch.Tensor, use_view: bool = True):
         """Per control point (or per Gaussian for no_lbs): (shared [B, P, 6], residual [B, P, 6])."""
-        return self.deform(self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), self.view_on(v_idx) if use_view else None)
+        return self.deform(
+            self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), self.view_on(v_idx) if use_view else None
+        )
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, refine: bool = True, use_view: bool = True) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]
@@ -227,8 +274,16 @@ class VCDGSModel(nn.Module):
         shared, res = self.control_transforms(v_idx, t_idx, use_view)
         local = shared + res  # [B, P, 6]
         if self.use_lbs:
-            x, q = lbs(self.means, self.quats, self.cp, local[..., :3], local[..., 3:], self.neighbours, self.weights,
-                           self.blend)
+            x, q = lbs(
+                self.means,
+                self.quats,
+                self.cp,
+                local[..., :3],
+                local[..., 3:],
+                self.neighbours,
+                self.weights,
+                self.blend,
+            )
         else:
             rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, N, 3, 3]: each Gaussian about itself
             x = self.means[None] + local[..., 3:]
@@ -257,5 +312,15 @@ class VCDGSModel(nn.Module):
             if offsets is not None:  # faces take the mean colour offset of their corners
                 fcol = fcol + offsets[0][:, self.faces].mean(2)
             splats = with_faces(x, q, scales, col, self.faces, fcol.clamp(0.0, 1.0), self.face_log_scale, self.flatness)
-        return {"means": x, "quats": q, "scales": scales, "colors": col, "splats": splats,
-                "shared": shared, "residual": res, "g_shared": g_shared, "g_residual": g_res, "offsets": offsets}
+        return {
+            "means": x,
+            "quats": q,
+            "scales": scales,
+            "colors": col,
+            "splats": splats,
+            "shared": shared,
+            "residual": res,
+            "g_shared": g_shared,
+            "g_residual": g_res,
+            "offsets": offsets,
+        }

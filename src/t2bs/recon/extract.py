@@ -30,8 +30,9 @@ def canonical_vertices(model, chunk: int = 8) -> np.ndarray:
     return torch.cat(out).numpy().astype(np.float32)
 
 
-def smooth_displacements(vertices: np.ndarray, rest: np.ndarray, faces: np.ndarray, iterations: int = 4,
-                         step: float = 0.5) -> np.ndarray:
+def smooth_displacements(
+    vertices: np.ndarray, rest: np.ndarray, faces: np.ndarray, iterations: int = 4, step: float = 0.5
+) -> np.ndarray:
     """``vertices`` [T, N, 3] with the high frequencies of their deformation removed; ``rest`` [N, 3].
 
     Why: each vertex is one Gaussian fitted through images, so neighbouring vertices carry small
@@ -79,8 +80,16 @@ def animated_mesh(mesh: Mesh, vertices: np.ndarray, times: np.ndarray) -> tuple[
     t = vertices.shape[0]
     rest = mesh.vertices.astype(np.float32)
     targets = {f"frame{i:04d}": (vertices[i] - rest).astype(np.float32) for i in range(t)}
-    anim_mesh = Mesh(mesh.vertices, mesh.faces, mesh.vertex_colors, mesh.uv, mesh.texture, targets, mesh.part_ids,
-                     list(mesh.part_names))
+    anim_mesh = Mesh(
+        mesh.vertices,
+        mesh.faces,
+        mesh.vertex_colors,
+        mesh.uv,
+        mesh.texture,
+        targets,
+        mesh.part_ids,
+        list(mesh.part_names),
+    )
     anim = {"times": np.asarray(times, np.float32), "weights": np.eye(t, dtype=np.float32), "name": "vcdgs"}
     return anim_mesh, anim
 
@@ -113,8 +122,9 @@ def write_video(path: Path, frames: np.ndarray, fps: float) -> None:
     import imageio.v2 as iio
 
     with atomic_path(path) as tmp:
-        with iio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                            ffmpeg_log_level="error") as wr:
+        with iio.get_writer(
+            tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1, ffmpeg_log_level="error"
+        ) as wr:
             for f in frames:
                 wr.append_data(f)
 
@@ -130,11 +140,18 @@ def write_outputs(out_dir: Path, mesh: Mesh, grid, result, cfg, metrics: dict, p
     anim_mesh, anim = animated_mesh(mesh, result.vertices, grid.times)
     save_mesh(anim_mesh, out_dir / "animation.glb", animation=anim)
     with atomic_path(out_dir / "state.pt") as tmp:
-        torch.save({"model": result.model.state_dict(), "config": cfg.to_dict(), "history": result.history,
-                    "canonical_view": result.model.canonical_view, "views": result.model.views,
-                    "frames": result.model.frames}, tmp)
+        torch.save(
+            {
+                "model": result.model.state_dict(),
+                "config": cfg.to_dict(),
+                "history": result.history,
+                "canonical_view": result.model.canonical_view,
+                "views": result.model.views,
+                "frames": result.model.frames,
+            },
+            tmp,
+        )
     if preview:
-        side = cfg.preview_side_view if 0 <= cfg.preview_side_view < grid.num_views else 0
-        frames = preview_frames(mesh, result.vertices, grid, side)
+        frames = preview_frames(mesh, result.vertices, grid, side_view=0)
         write_video(out_dir / "preview.mp4", frames, float(grid.meta.get("fps", 8.0)))
     write_json(out_dir / "metrics.json", metrics)

@@ -36,8 +36,10 @@ class StaticGaussians:
 
     def tensors(self, device="cpu") -> dict:
         f = None if self.faces is None else torch.as_tensor(self.faces, dtype=torch.int64, device=device)
+
         def opt(a):
             return None if a is None else torch.as_tensor(a, dtype=torch.float32, device=device)
+
         return {"faces": f, "face_colors": opt(self.face_colors), "face_log_scale": opt(self.face_log_scale)}
 
 
@@ -54,10 +56,12 @@ def frame_quat(u: torch.Tensor, w: torch.Tensor, n: torch.Tensor) -> torch.Tenso
     trace = m00 + m11 + m22
     # Per formula: the square root's argument (16 x the big component squared / 4) and the X, Y, Z, W numerators
     # (None: the big component itself, s / 4).
-    formulas = ((1.0 + trace, (m21 - m12, m02 - m20, m10 - m01, None)),
-                (1.0 + 2.0 * m00 - trace, (None, m01 + m10, m02 + m20, m21 - m12)),
-                (1.0 + 2.0 * m11 - trace, (m01 + m10, None, m12 + m21, m02 - m20)),
-                (1.0 + 2.0 * m22 - trace, (m02 + m20, m12 + m21, None, m10 - m01)))
+    formulas = (
+        (1.0 + trace, (m21 - m12, m02 - m20, m10 - m01, None)),
+        (1.0 + 2.0 * m00 - trace, (None, m01 + m10, m02 + m20, m21 - m12)),
+        (1.0 + 2.0 * m11 - trace, (m01 + m10, None, m12 + m21, m02 - m20)),
+        (1.0 + 2.0 * m22 - trace, (m02 + m20, m12 + m21, None, m10 - m01)),
+    )
     cands = []
     for arg, numerators in formulas:
         s = 2.0 * arg.clamp_min(1e-8).sqrt()  # 4 x the big component
@@ -67,8 +71,9 @@ def frame_quat(u: torch.Tensor, w: torch.Tensor, n: torch.Tensor) -> torch.Tenso
     return q / q.norm(dim=-1, keepdim=True)
 
 
-def face_gaussians(x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def face_gaussians(
+    x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One Gaussian per triangle, built from the (deformed) vertex positions each time.
 
     x [B, N, 3], faces [F, 3], face_log_scale [F] -> means [B, F, 3] (centroids), quats [B, F, 4]
@@ -100,8 +105,18 @@ def camera_tensors(cameras: list[Camera], device="cpu") -> tuple[torch.Tensor, t
     return vm, ks
 
 
-def render(means, quats_xyzw, scales, colors, viewmats, ks, width: int, height: int, background=(1.0, 1.0, 1.0),
-           backend: str = "auto") -> dict:
+def render(
+    means,
+    quats_xyzw,
+    scales,
+    colors,
+    viewmats,
+    ks,
+    width: int,
+    height: int,
+    background=(1.0, 1.0, 1.0),
+    backend: str = "auto",
+) -> dict:
     """Splat render with the Gaussians in this package's convention (XYZW quats, opacity 1).
 
     Shapes: [C, N, ...] or [N, ...] per tensor; returns rgb [C, H, W, 3], alpha [C, H, W, 1].
@@ -114,14 +129,38 @@ def render(means, quats_xyzw, scales, colors, viewmats, ks, width: int, height: 
     opac = torch.ones(n, dtype=means.dtype, device=means.device)
     bg = torch.tensor(background, dtype=means.dtype, device=means.device)
     try:
-        return rasterize_gaussians(means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height,
-                                   background=bg, backend=backend)
+        return rasterize_gaussians(
+            means,
+            to_wxyz(quats_xyzw),
+            scales,
+            opac,
+            colors,
+            viewmats,
+            ks,
+            width,
+            height,
+            background=bg,
+            backend=backend,
+        )
     except ImportError as exc:  # the fast kernel's module is not there (yet): same rules, slower
         if not _warned_backend:
-            warnings.warn(f"splat backend {backend!r} unavailable ({exc}); using the reference rasterizer", stacklevel=2)
+            warnings.warn(
+                f"splat backend {backend!r} unavailable ({exc}); using the reference rasterizer", stacklevel=2
+            )
             _warned_backend = True
-        return rasterize_gaussians(means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height,
-                                   background=bg, backend="reference")
+        return rasterize_gaussians(
+            means,
+            to_wxyz(quats_xyzw),
+            scales,
+            opac,
+            colors,
+            viewmats,
+            ks,
+            width,
+            height,
+            background=bg,
+            backend="reference",
+        )
 
 
 def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale, flatness: float = 0.25):
@@ -132,7 +171,12 @@ def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale,
         return means, quats, scales, colors
     fm, fq, fs = face_gaussians(means, faces, face_log_scale, flatness)
     fc = face_colors if face_colors.dim() == 3 else face_colors[None].expand(means.shape[0], -1, -1)
-    return (torch.cat([means, fm], 1), torch.cat([quats, fq], 1), torch.cat([scales, fs], 1), torch.cat([colors, fc], 1))
+    return (
+        torch.cat([means, fm], 1),
+        torch.cat([quats, fq], 1),
+        torch.cat([scales, fs], 1),
+        torch.cat([colors, fc], 1),
+    )
 
 
 def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int) -> np.ndarray:
@@ -149,8 +193,9 @@ def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int) -> np.nda
     return faces[keep]
 
 
-def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True,
-                          max_face_gaussians: int = 0) -> StaticGaussians:
+def init_static_gaussians(
+    mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True, max_face_gaussians: int = 0
+) -> StaticGaussians:
     """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length; optionally one
     per triangle, on at most ``max_face_gaussians`` of the largest ones (0 = every triangle)."""
     v = mesh.vertices.astype(np.float64)
@@ -174,14 +219,30 @@ def init_static_gaussians(mesh: Mesh, flatness: float = 0.25, with_face_gaussian
         else:
             face_colors = colors[faces].mean(1)
         face_log_scale = np.zeros(len(faces), np.float32)
-    return StaticGaussians(mesh.vertices.astype(np.float32), quats.astype(np.float32), log_scales.astype(np.float32),
-                           colors, faces, face_colors.astype(np.float32) if face_colors is not None else None, face_log_scale)
+    return StaticGaussians(
+        mesh.vertices.astype(np.float32),
+        quats.astype(np.float32),
+        log_scales.astype(np.float32),
+        colors,
+        faces,
+        face_colors.astype(np.float32) if face_colors is not None else None,
+        face_log_scale,
+    )
 
 
-def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.ndarray | None, cameras: list[Camera],
-                         iters: int = 150, lr: float = 0.01, views_per_iter: int = 3, seed: int = 0,
-                         device: str = "cpu", progress: bool = False, fit_colors: bool = False) -> StaticGaussians:
-    """Fit scales, orientations and colours to ``targets`` [C, H, W, 3] float 0..1 (renders of the
+def fit_static_gaussians(
+    gs: StaticGaussians,
+    targets: np.ndarray,
+    masks: np.ndarray | None,
+    cameras: list[Camera],
+    iters: int = 150,
+    lr: float = 0.01,
+    views_per_iter: int = 3,
+    seed: int = 0,
+    device: str = "cpu",
+    progress: bool = False,
+) -> StaticGaussians:
+    """Fit scales and orientations to ``targets`` [C, H, W, 3] float 0..1 (renders of the
     static mesh from ``cameras``), ``masks`` [C, H, W] float or None. Positions stay fixed."""
     if iters <= 0:
         return gs
@@ -192,16 +253,16 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
     means = torch.as_tensor(gs.means, device=dev)
     log_s = torch.nn.Parameter(torch.as_tensor(gs.log_scales, device=dev).clone())
     quats = torch.nn.Parameter(torch.as_tensor(gs.quats, device=dev).clone())
-    col_logit = torch.nn.Parameter(torch.logit(torch.as_tensor(gs.colors, device=dev).clamp(0.02, 0.98)))
-    # Colours stay the texture's by default (the paper fits scale and orientation only): fitting
-    # them would paint hidden Gaussians (the mouth interior) with the colour of what covers them.
-    params = [{"params": [log_s, quats], "lr": lr}] + ([{"params": [col_logit], "lr": 2 * lr}] if fit_colors else [])
+    # Colours stay the texture's (the paper fits scale and orientation only): fitting them would paint
+    # hidden Gaussians (the mouth interior) with the colour of what covers them.
+    col_logit = torch.logit(torch.as_tensor(gs.colors, device=dev).clamp(0.02, 0.98))
+    params = [{"params": [log_s, quats], "lr": lr}]
     faces = None
     if gs.faces is not None:
         faces = torch.as_tensor(gs.faces, dtype=torch.int64, device=dev)
-        fcol_logit = torch.nn.Parameter(torch.logit(torch.as_tensor(gs.face_colors, device=dev).clamp(0.02, 0.98)))
+        fcol_logit = torch.logit(torch.as_tensor(gs.face_colors, device=dev).clamp(0.02, 0.98))
         flog = torch.nn.Parameter(torch.as_tensor(gs.face_log_scale, device=dev).clone())
-        params += [{"params": [flog], "lr": lr}] + ([{"params": [fcol_logit], "lr": 2 * lr}] if fit_colors else [])
+        params += [{"params": [flog], "lr": lr}]
     opt = torch.optim.Adam(params)
     tgt = torch.as_tensor(targets, dtype=torch.float32, device=dev)
     msk = None if masks is None else torch.as_tensor(masks, dtype=torch.float32, device=dev)
@@ -211,7 +272,7 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
     last = float("nan")
     bar = tqdm(range(iters), desc="static Gaussians", leave=False, disable=not progress)
     for _ in bar:
-        idx = torch.randperm(c, generator=gen)[:min(views_per_iter, c)].to(dev)
+        idx = torch.randperm(c, generator=gen)[: min(views_per_iter, c)].to(dev)
         q = quats / quats.norm(dim=-1, keepdim=True)
         g = (means[None], q[None], log_s.exp()[None], torch.sigmoid(col_logit)[None])
         if faces is not None:
@@ -235,5 +296,13 @@ def fit_static_gaussians(gs: StaticGaussians, targets: np.ndarray, masks: np.nda
         if faces is not None:
             fc = torch.sigmoid(fcol_logit).cpu().numpy().astype(np.float32)
             fl = flog.detach().clamp(-2.0, 1.0).cpu().numpy().astype(np.float32)
-        return StaticGaussians(gs.means, q.cpu().numpy().astype(np.float32), log_s.cpu().numpy().astype(np.float32),
-                               torch.sigmoid(col_logit).cpu().numpy().astype(np.float32), gs.faces, fc, fl, last)
+        return StaticGaussians(
+            gs.means,
+            q.cpu().numpy().astype(np.float32),
+            log_s.cpu().numpy().astype(np.float32),
+            torch.sigmoid(col_logit).cpu().numpy().astype(np.float32),
+            gs.faces,
+            fc,
+            fl,
+            last,
+        )

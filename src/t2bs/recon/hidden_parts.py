@@ -21,11 +21,11 @@ normal along their separation, and each hidden part goes by where it lies: wholl
 wholly on the other, across it evenly (a mouth bag, whose floor and roof move apart), or across it
 but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
 all its parts, by coordinate descent over the groups. Where nothing opens, no render can tell
-their motions apart: by default nothing moves; with ``closed_rigid`` (``config.hidden_pick_closed_rigid``,
+their motions apart: by default nothing moves; with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``,
 opt-in) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
 head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
 drags them along while they should follow the skull.
-On by default (``config.hidden_pick``).
+On by default (``config.hidden_parts.hidden_pick``).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
 @dataclass
 class Opening:
     """Where the seen surface opens (``find_opening``): a plane through the slit, in rest coordinates."""
+
     point: np.ndarray  # [3] mean of the opening pairs' rest midpoints
     normal: np.ndarray  # [3] unit: the pairs' main direction of separation, towards where the side that moves more goes
     pairs: int  # pairs of seen vertices that open
@@ -51,11 +52,14 @@ class Opening:
 @dataclass
 class HiddenPick:
     """What ``pick_hidden_motions`` did: which parts, how they were grouped, which motion each group got."""
+
     parts: list[np.ndarray] = field(default_factory=list)  # vertex indices of each hidden part
     groups: list[list[int]] = field(default_factory=list)  # part indices of each group (GROUPS order, empty dropped)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
     observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
-    opening: Opening | None = None  # None: nothing opens, so every part keeps its own motion (or, closed_rigid, the head's)
+    opening: Opening | None = (
+        None  # None: nothing opens, so every part keeps its own motion (or, closed_rigid, the head's)
+    )
     closed_rigid: bool = False  # nothing opens and every part took the seen surface's robust rigid motion
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
@@ -64,12 +68,19 @@ class HiddenPick:
     seconds: float = 0.0
 
     def summary(self) -> dict:
-        return {"hidden_parts": len(self.parts), "groups": [len(g) for g in self.groups],
-                "opening_pairs": self.opening.pairs if self.opening else 0,
-                "observable": int(sum(self.observable)), "closed_rigid": self.closed_rigid,
-                "moved": len(self.parts) if self.closed_rigid else int(sum(p >= 0 for p in self.picks)),
-                "views": self.views, "loss_before": round(self.loss_before, 6),
-                "loss_after": round(self.loss_after, 6), "sweeps": self.sweeps, "seconds": round(self.seconds, 1)}
+        return {
+            "hidden_parts": len(self.parts),
+            "groups": [len(g) for g in self.groups],
+            "opening_pairs": self.opening.pairs if self.opening else 0,
+            "observable": int(sum(self.observable)),
+            "closed_rigid": self.closed_rigid,
+            "moved": len(self.parts) if self.closed_rigid else int(sum(p >= 0 for p in self.picks)),
+            "views": self.views,
+            "loss_before": round(self.loss_before, 6),
+            "loss_after": round(self.loss_after, 6),
+            "sweeps": self.sweeps,
+            "seconds": round(self.seconds, 1),
+        }
 
 
 def hidden_parts(mesh: Mesh, seen: np.ndarray, min_vertices: int = 20) -> list[np.ndarray]:
@@ -81,8 +92,9 @@ def hidden_parts(mesh: Mesh, seen: np.ndarray, min_vertices: int = 20) -> list[n
     return sorted(out, key=len, reverse=True)
 
 
-def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, clusters: int = 8, seed: int = 0,
-                    min_size: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def cluster_motions(
+    rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, clusters: int = 8, seed: int = 0, min_size: int = 10
+) -> tuple[np.ndarray, np.ndarray]:
     """Rigid motions of clusters of the seen vertices: rest [N, 3], vertices [T, N, 3], seen [N] bool
     -> (rotations [C, T, 3, 3], translations [C, T, 3]), C <= ``clusters`` (clusters under
     ``min_size`` vertices are dropped). Features: each seen vertex's displacement over time plus
@@ -110,11 +122,18 @@ def cluster_motions(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, cl
     return (np.stack(rots), np.stack(trans)) if rots else none
 
 
-def compare_views(cameras: list[Camera], canonical: int, candidates: list[int], count: int = 5,
-                  min_separation_deg: float = 15.0, max_angle_deg: float = 40.0) -> list[int]:
+def compare_views(
+    cameras: list[Camera],
+    canonical: int,
+    candidates: list[int],
+    count: int = 5,
+    min_separation_deg: float = 15.0,
+    max_angle_deg: float = 40.0,
+) -> list[int]:
     """Up to ``count`` of ``candidates`` (the canonical view first), each within ``max_angle_deg`` of
     the canonical view's direction and ``min_separation_deg`` from every view already chosen: views
     that see into the mouth from different sides, without near-duplicates."""
+
     def angle(a: int, b: int) -> float:  # between the viewing directions (OpenCV camera z axes in the world)
         za, zb = cameras[a].world_to_camera[2, :3], cameras[b].world_to_camera[2, :3]
         return float(np.degrees(np.arccos(np.clip(za @ zb / np.linalg.norm(za) / np.linalg.norm(zb), -1.0, 1.0))))
@@ -128,16 +147,35 @@ def compare_views(cameras: list[Camera], canonical: int, candidates: list[int], 
     return chosen
 
 
-def render_losses(renderer, mesh: Mesh, vertices: np.ndarray, images: np.ndarray, cameras: list[Camera],
-                  views: list[int], frames: list[int], shading: str = "lambert") -> np.ndarray:
+def render_losses(
+    renderer,
+    mesh: Mesh,
+    vertices: np.ndarray,
+    images: np.ndarray,
+    cameras: list[Camera],
+    views: list[int],
+    frames: list[int],
+    shading: str = "lambert",
+) -> np.ndarray:
     """[len(views) * len(frames)] mean L1 difference between mesh renders of ``vertices`` [T, N, 3] and
     ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size), view-major."""
-    return np.array([np.abs(renderer.render(mesh, cameras[v], vertices=vertices[t], shading=shading).rgb
-                            - images[v, t]).mean() for v in views for t in frames])
+    return np.array(
+        [
+            np.abs(renderer.render(mesh, cameras[v], vertices=vertices[t], shading=shading).rgb - images[v, t]).mean()
+            for v in views
+            for t in frames
+        ]
+    )
 
 
-def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, radius: float = 0.01,
-                 min_gap: float = 0.01, link: float = 0.02) -> Opening | None:
+def find_opening(
+    rest: np.ndarray,
+    vertices: np.ndarray,
+    seen: np.ndarray,
+    radius: float = 0.01,
+    min_gap: float = 0.01,
+    link: float = 0.02,
+) -> Opening | None:
     """The slit where the seen surface opens, or None: rest [N, 3], vertices [T, N, 3], seen [N] bool.
     Opening pairs: seen vertices within ``radius`` of each other at rest that move more than ``min_gap``
     further apart in some frame (all three fractions of the rest bounding-box diagonal); skin that merely
@@ -156,7 +194,9 @@ def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, radiu
     if not len(pairs):
         return None
     i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
-    grow = np.linalg.norm(vertices[:, i] - vertices[:, j], axis=-1) - np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=-1)
+    grow = np.linalg.norm(vertices[:, i] - vertices[:, j], axis=-1) - np.linalg.norm(
+        x[pairs[:, 0]] - x[pairs[:, 1]], axis=-1
+    )
     opens = grow.max(0) > min_gap * diag
     if not opens.any():
         return None
@@ -181,8 +221,9 @@ def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, radiu
 GROUPS = ("moving side", "other side", "across, evenly", "across, mostly one side")
 
 
-def group_parts(rest: np.ndarray, parts: list[np.ndarray], opening: Opening, side_fraction: float = 0.9,
-                even: float = 0.7) -> list[list[int]]:
+def group_parts(
+    rest: np.ndarray, parts: list[np.ndarray], opening: Opening, side_fraction: float = 0.9, even: float = 0.7
+) -> list[list[int]]:
     """Part indices of each group in GROUPS (empty groups dropped): a part with at least ``side_fraction``
     of its vertices on one side of ``opening``'s plane lies on that side; one across it lies across
     evenly when the shorter of its two reaches past the plane is at least ``even`` of the longer."""
@@ -191,22 +232,44 @@ def group_parts(rest: np.ndarray, parts: list[np.ndarray], opening: Opening, sid
         s = (rest[ix] - opening.point) @ opening.normal
         above = float((s > 0).mean())
         reach = sorted([max(float(s.max()), 0.0), max(float(-s.min()), 0.0)])
-        label.append(0 if above >= side_fraction else 1 if above <= 1 - side_fraction
-                     else 2 if reach[0] >= even * reach[1] else 3)
+        label.append(
+            0
+            if above >= side_fraction
+            else 1
+            if above <= 1 - side_fraction
+            else 2
+            if reach[0] >= even * reach[1]
+            else 3
+        )
     return [g for g in ([p for p, lab in enumerate(label) if lab == k] for k in range(len(GROUPS))) if g]
 
 
-def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, images: np.ndarray,
-                        cameras: list[Camera], views: list[int], frames: list[int], shading: str = "lambert",
-                        clusters: int = 8, min_vertices: int = 20, seed: int = 0,
-                        renderer=None, sweeps: int = 4, closed_rigid: bool = False) -> tuple[np.ndarray, HiddenPick]:
+def pick_hidden_motions(
+    mesh: Mesh,
+    vertices: np.ndarray,
+    seen: np.ndarray,
+    images: np.ndarray,
+    cameras: list[Camera],
+    views: list[int],
+    frames: list[int],
+    shading: str = "lambert",
+    clusters: int = 8,
+    min_vertices: int = 20,
+    seed: int = 0,
+    renderer=None,
+    sweeps: int = 4,
+    closed_rigid: bool = False,
+    side_fraction: float = 0.9,
+    even: float = 0.7,
+) -> tuple[np.ndarray, HiddenPick]:
     """``vertices`` [T, N, 3] with each group of hidden parts moved by the candidate rigid motion whose
     mesh renders best match ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size) at
     ``views`` x ``frames`` (module docstring). ``seen`` [N] bool: vertices some training view sees
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
     moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
-    seen vertices instead of keeping its own. Returns (vertices, HiddenPick)."""
+    seen vertices instead of keeping its own. ``side_fraction``, ``even``: the grouping rule's thresholds
+    (``group_parts``). Returns (vertices, HiddenPick)."""
     import time
 
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -225,10 +288,11 @@ def pick_hidden_motions(mesh: Mesh, vertices: np.ndarray, seen: np.ndarray, imag
     if not len(rots):
         report.seconds = time.time() - t0
         return out, report
-    report.groups = group_parts(mesh.vertices, report.parts, report.opening)
+    report.groups = group_parts(mesh.vertices, report.parts, report.opening, side_fraction, even)
     own = renderer is None
     r = MeshRenderer() if own else renderer
     try:
+
         def moved(current: np.ndarray, group: list[int], c: int) -> np.ndarray:
             """A copy of ``current`` with the group's parts on option c (-1: each part's own motion)."""
             trial = current.copy()

@@ -27,15 +27,29 @@ def quat_right_matrix(q: torch.Tensor) -> torch.Tensor:
     With q fixed (a Gaussian's rest orientation) the product is one matrix-vector product: the
     broadcast cross product of ``roma.quat_product`` costs ~10 operators per call."""
     x, y, z, w = q.unbind(-1)
-    return torch.stack([torch.stack([w, z, -y, x], -1), torch.stack([-z, w, x, y], -1),
-                        torch.stack([y, -x, w, z], -1), torch.stack([-x, -y, -z, w], -1)], -2)
+    return torch.stack(
+        [
+            torch.stack([w, z, -y, x], -1),
+            torch.stack([-z, w, x, y], -1),
+            torch.stack([y, -x, w, z], -1),
+            torch.stack([-x, -y, -z, w], -1),
+        ],
+        -2,
+    )
 
 
 def quat_left_matrix(p: torch.Tensor) -> torch.Tensor:
     """p [..., 4] XYZW -> M [..., 4, 4] with p (x) q = M q for every quaternion q."""
     x, y, z, w = p.unbind(-1)
-    return torch.stack([torch.stack([w, -z, y, x], -1), torch.stack([z, w, -x, y], -1),
-                        torch.stack([-y, x, w, z], -1), torch.stack([-x, -y, -z, w], -1)], -2)
+    return torch.stack(
+        [
+            torch.stack([w, -z, y, x], -1),
+            torch.stack([z, w, -x, y], -1),
+            torch.stack([-y, x, w, z], -1),
+            torch.stack([-x, -y, -z, w], -1),
+        ],
+        -2,
+    )
 
 
 def blend_matrix(neighbours: torch.Tensor, weights: torch.Tensor, num_points: int) -> torch.Tensor:
@@ -50,8 +64,14 @@ def blend_matrix(neighbours: torch.Tensor, weights: torch.Tensor, num_points: in
     return torch.sparse_coo_tensor(idx, weights.reshape(-1), (n, num_points), check_invariants=True).coalesce()
 
 
-def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbours: torch.Tensor,
-           weights: torch.Tensor, matrix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _blend(
+    rotvec: torch.Tensor,
+    trans: torch.Tensor,
+    p: torch.Tensor,
+    neighbours: torch.Tensor,
+    weights: torch.Tensor,
+    matrix: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Blend per-control-point transforms per Gaussian: a sparse matmul with ``matrix`` (``blend_matrix``),
     else the reference gather over ``neighbours`` / ``weights``.
 
@@ -68,11 +88,23 @@ def _blend(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor, neighbour
         b, k, c = packed.shape
         blended = torch.sparse.mm(matrix, packed.transpose(0, 1).reshape(k, b * c)).reshape(-1, b, c).transpose(0, 1)
     bq = blended[..., 12:]
-    return blended[..., :9].unflatten(-1, (3, 3)), blended[..., 9:12], bq / bq.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return (
+        blended[..., :9].unflatten(-1, (3, 3)),
+        blended[..., 9:12],
+        bq / bq.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+    )
 
 
-def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
-        neighbours: torch.Tensor, weights: torch.Tensor, matrix: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def lbs(
+    x: torch.Tensor,
+    q_rest: torch.Tensor,
+    p: torch.Tensor,
+    rotvec: torch.Tensor,
+    trans: torch.Tensor,
+    neighbours: torch.Tensor,
+    weights: torch.Tensor,
+    matrix: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """x [N, 3], q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3] (about p_k), neighbours/weights
     [N, knn], optional ``matrix`` = blend_matrix(neighbours, weights, K) (faster, same result)
     -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
@@ -81,16 +113,23 @@ def lbs(x: torch.Tensor, q_rest: torch.Tensor, p: torch.Tensor, rotvec: torch.Te
     return xt, matvec(quat_right_matrix(q_rest), q)
 
 
-def lbs_positions(x: torch.Tensor, p: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
-                  neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def lbs_positions(
+    x: torch.Tensor,
+    p: torch.Tensor,
+    rotvec: torch.Tensor,
+    trans: torch.Tensor,
+    neighbours: torch.Tensor,
+    weights: torch.Tensor,
+) -> torch.Tensor:
     """x [N, 3] rest positions, p [K, 3] control points, rotvec/trans [B, K, 3],
     neighbours/weights [N, knn] -> [B, N, 3] skinned positions."""
     m, b, _ = _blend(rotvec, trans, p, neighbours, weights)
     return matvec(m, x) + b
 
 
-def apply_rigid(x: torch.Tensor, q: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor,
-                centre: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def apply_rigid(
+    x: torch.Tensor, q: torch.Tensor, rotvec: torch.Tensor, trans: torch.Tensor, centre: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """One rigid transform per batch item: x [B, N, 3], q [B, N, 4] XYZW, rotvec/trans [B, 3]
     -> rotated about ``centre`` [3] (origin by default) and translated."""
     rot = roma.rotvec_to_rotmat(rotvec)  # [B, 3, 3]

@@ -46,11 +46,19 @@ class AlexLPIPS(nn.Module):
     def __init__(self):
         super().__init__()
         self.features = nn.Sequential(
-            nn.Conv2d(3, 64, 11, 4, 2), nn.ReLU(), nn.MaxPool2d(3, 2),
-            nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
-            nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(),
-            nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
-            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU())
+            nn.Conv2d(3, 64, 11, 4, 2),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2),
+            nn.Conv2d(64, 192, 5, padding=2),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2),
+            nn.Conv2d(192, 384, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(384, 256, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(256, 256, 3, padding=1),
+            nn.ReLU(),
+        )
         self.lins = nn.ModuleList([nn.Conv2d(c, 1, 1, bias=False) for c in _LPIPS_CHANNELS])
         self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
@@ -84,8 +92,10 @@ def load_lpips(path: str | Path) -> AlexLPIPS:
     or this class's own (``features.I.*``, ``lins.K.weight``).
     """
     path = Path(path)
-    how = ("pip install lpips, then copy lpips/weights/v0.1/alex.pth and torchvision's AlexNet weights "
-           "(alexnet-owt-7be5be79.pth) into one folder and pass it as lpips_weights (or use perceptual=dssim)")
+    how = (
+        "pip install lpips, then copy lpips/weights/v0.1/alex.pth and torchvision's AlexNet weights "
+        "(alexnet-owt-7be5be79.pth) into one folder and pass it as lpips_weights (or use perceptual=dssim)"
+    )
     if not path.exists():
         raise MissingCheckpointError("LPIPS weights", str(path), how)
     files = sorted(path.glob("*.pth")) + sorted(path.glob("*.pt")) if path.is_dir() else [path]
@@ -126,8 +136,11 @@ class PerceptualLoss(nn.Module):
             self.kind = "none"
         elif mode == "lpips" or (mode == "auto" and lpips_weights):
             if not lpips_weights:
-                raise MissingCheckpointError("LPIPS weights", "(lpips_weights is empty)",
-                                             "set lpips_weights to a local LPIPS/AlexNet state dict, or use perceptual=dssim")
+                raise MissingCheckpointError(
+                    "LPIPS weights",
+                    "(lpips_weights is empty)",
+                    "set lpips_weights to a local LPIPS/AlexNet state dict, or use perceptual=dssim",
+                )
             self.lpips = load_lpips(lpips_weights)
             self.kind = "lpips"
         else:
@@ -152,7 +165,7 @@ IMAGE_TERMS = ("huber", "mask", "dssim", "lpips")  # the names image_loss gives 
 def image_loss(render: dict, target: torch.Tensor, mask: torch.Tensor | None, perceptual: PerceptualLoss, cfg) -> dict:
     """render: rasterizer output; target [B, H, W, 3]; mask [B, H, W] float or None -> loss terms."""
     rgb = render["rgb"]
-    band = getattr(cfg, "silhouette_band", 0)
+    band = cfg.loss.silhouette_band
     if mask is not None and band > 0:
         # One splat per vertex/face overhangs the mesh outline by ~1 px in every view (Gaussian
         # tails); compared with the hard mesh outline this bias reads as "shrink the head".
@@ -163,9 +176,11 @@ def image_loss(render: dict, target: torch.Tensor, mask: torch.Tensor | None, pe
         ring = (dil - mask).clamp(0, 1)[..., None]  # [B, H, W, 1]
         rgb = rgb * (1 - ring) + target * ring
         mask = dil
-    terms = {"huber": huber_pyramid(rgb, target, cfg.huber_delta, cfg.pyramid_levels)}
-    if mask is not None and cfg.mask_weight > 0:
-        terms["mask"] = cfg.mask_weight * huber_pyramid(render["alpha"], mask[..., None], cfg.huber_delta, cfg.pyramid_levels)
-    if cfg.perceptual_weight > 0 and perceptual.kind != "none":
-        terms[perceptual.kind] = cfg.perceptual_weight * perceptual(rgb, target)
+    terms = {"huber": huber_pyramid(rgb, target, cfg.loss.huber_delta, cfg.loss.pyramid_levels)}
+    if mask is not None and cfg.loss.mask_weight > 0:
+        terms["mask"] = cfg.loss.mask_weight * huber_pyramid(
+            render["alpha"], mask[..., None], cfg.loss.huber_delta, cfg.loss.pyramid_levels
+        )
+    if cfg.loss.perceptual_weight > 0 and perceptual.kind != "none":
+        terms[perceptual.kind] = cfg.loss.perceptual_weight * perceptual(rgb, target)
     return terms

@@ -51,8 +51,11 @@ class VertexTracks:
     textured: torch.Tensor | None = None  # [V, N] bool: the track starts on a textured pixel (None = all do)
 
     def to(self, device) -> "VertexTracks":
-        return VertexTracks(self.displacement.to(device), self.weights.to(device),
-                            None if self.textured is None else self.textured.to(device))
+        return VertexTracks(
+            self.displacement.to(device),
+            self.weights.to(device),
+            None if self.textured is None else self.textured.to(device),
+        )
 
     def coverage(self) -> float:
         """Share of (view, frame, vertex) entries with a valid track."""
@@ -72,7 +75,9 @@ def _sample(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
     from scipy.ndimage import map_coordinates
 
     coords = [uv[:, 1] - 0.5, uv[:, 0] - 0.5]
-    return np.stack([map_coordinates(field[..., c], coords, order=1, mode="nearest") for c in range(field.shape[-1])], -1)
+    return np.stack(
+        [map_coordinates(field[..., c], coords, order=1, mode="nearest") for c in range(field.shape[-1])], -1
+    )
 
 
 def _grey(img: np.ndarray, blur_px: float) -> np.ndarray:
@@ -127,9 +132,20 @@ def texture_strength(grey: np.ndarray) -> np.ndarray:
     return lam * (max(grey.shape) / 128.0) ** 2
 
 
-def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], views: list[int], fb_px: float = 1.0,
-                   blur_px: float = 0.7, progress: bool = False, min_texture: float = 0.0,
-                   workers: int = 0, chain: bool = True, agree_px: float = 1.5, flow_size: int = 0) -> VertexTracks:
+def compute_tracks(
+    mesh: Mesh,
+    images: torch.Tensor,
+    cameras: list[Camera],
+    views: list[int],
+    fb_px: float = 1.0,
+    blur_px: float = 0.7,
+    progress: bool = False,
+    min_texture: float = 0.0,
+    workers: int = 0,
+    chain: bool = True,
+    agree_px: float = 1.5,
+    flow_size: int = 0,
+) -> VertexTracks:
     """Tracks of every vertex in ``views`` of ``images`` [V, T, H, W, 3] float 0..1 (rest pose at
     t = 0), seen by ``cameras`` [V] at the images' resolution. Views not listed get weight 0.
     ``min_texture``: ``textured`` marks the tracks starting where ``texture_strength`` of the rest
@@ -187,8 +203,7 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
                 alive &= step_ok
                 u = u + step
                 box = _box3(grey[t])
-                closer = (np.abs(_sample(box, u0 + d)[:, 0] - rest_grey)
-                          <= np.abs(_sample(box, u)[:, 0] - rest_grey))
+                closer = np.abs(_sample(box, u0 + d)[:, 0] - rest_grey) <= np.abs(_sample(box, u)[:, 0] - rest_grey)
                 direct = ok & (~alive | (np.linalg.norm(d - (u - u0), axis=-1) < agree_px * scale) | closer)
                 d = np.where(direct[:, None], d, u - u0)
                 ok = direct | alive
@@ -196,14 +211,24 @@ def compute_tracks(mesh: Mesh, images: torch.Tensor, cameras: list[Camera], view
             weights[v, t] = ok
 
     with ThreadPoolExecutor(max(1, min(len(views), workers or torch.get_num_threads()))) as pool:
-        for _ in tqdm(pool.map(view_tracks, views), total=len(views), desc="vertex tracks", leave=False,
-                      disable=not progress):
+        for _ in tqdm(
+            pool.map(view_tracks, views), total=len(views), desc="vertex tracks", leave=False, disable=not progress
+        ):
             pass
     return VertexTracks(torch.from_numpy(disp), torch.from_numpy(weights), torch.from_numpy(textured))
 
 
-def track_loss(x_t: torch.Tensor, x_0: torch.Tensor, viewmats: torch.Tensor, ks: torch.Tensor, tracks: VertexTracks,
-               v_idx: torch.Tensor, t_idx: torch.Tensor, delta_px: float = 1.0, flat_weight: float = 1.0) -> torch.Tensor:
+def track_loss(
+    x_t: torch.Tensor,
+    x_0: torch.Tensor,
+    viewmats: torch.Tensor,
+    ks: torch.Tensor,
+    tracks: VertexTracks,
+    v_idx: torch.Tensor,
+    t_idx: torch.Tensor,
+    delta_px: float = 1.0,
+    flat_weight: float = 1.0,
+) -> torch.Tensor:
     """Huber (in pixels, / delta so that large errors count as L1) between the projected model
     motion x_t - x_0 ([B, N, 3] each, at (v, t) and (v, 0)) and the tracked motion, averaged over
     valid tracks. viewmats/ks [B, ...] are the batch's cameras. Tracks that start on untextured

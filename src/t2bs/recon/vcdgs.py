@@ -7,9 +7,9 @@ training of T_global, DeformMLP and RefineMLP. Each step renders a batch of rand
 pairs (a share of them at the canonical view, which defines the output) and minimises Huber
 (+ pyramid) + perceptual (+ silhouette) losses; (4) the output: the vertex Gaussians' centres at
 the canonical view, each frame's non-rigid displacement lightly smoothed over the mesh
-(extract.smooth_displacements, config.output_smoothing). Frame 0 is anchored to the rest pose.
-config.view_residual_static (on by default) keeps the view residuals fixed over time: a per-view
-shape disagreement, as 4D generators make. config.time_budget_s caps one reconstruction's wall
+(extract.smooth_displacements, config.output.output_smoothing). Frame 0 is anchored to the rest pose.
+config.model.view_residual_static (on by default) keeps the view residuals fixed over time: a per-view
+shape disagreement, as 4D generators make. config.optim.time_budget_s caps one reconstruction's wall
 time (quick: 260 s; 0 = none): the schedule then runs on max(step, elapsed-time) progress, so
 warm-up, joint stage and learning-rate decay all shrink in proportion when the steps do not fit
 (``_Schedule``).
@@ -56,7 +56,14 @@ from t2bs.recon.config import VCDGSConfig
 from t2bs.recon.control_points import build_control_points
 from t2bs.recon.deform import VCDGSModel
 from t2bs.recon.lbs import matvec
-from t2bs.recon.gaussians import StaticGaussians, camera_tensors, fit_static_gaussians, init_static_gaussians, render, with_faces
+from t2bs.recon.gaussians import (
+    StaticGaussians,
+    camera_tensors,
+    fit_static_gaussians,
+    init_static_gaussians,
+    render,
+    with_faces,
+)
 from t2bs.recon.losses import IMAGE_TERMS, PerceptualLoss, image_loss
 from t2bs.recon.tracks import VertexTracks, compute_tracks, track_loss
 
@@ -69,9 +76,7 @@ class TrainData:
     canonical_view: int  # the paper's v = 0
     train_views: list[int]  # views used for training (holdout removed)
     shading: str = "lambert"  # the grid renderer's shading (from its meta), for the static fit's mesh renders
-    bias_rgb: torch.Tensor | None = None  # [V, H, W, 3] splat - mesh render of the rest pose (debias_targets)
-    bias_alpha: torch.Tensor | None = None  # [V, H, W] same for alpha vs mask
-    tracks: VertexTracks | None = None  # optical-flow vertex tracks (config.track_weight > 0)
+    tracks: VertexTracks | None = None  # optical-flow vertex tracks (config.tracks.track_weight > 0)
 
     def to(self, device) -> "TrainData":
         """A copy whose per-step tensors (targets, masks, residuals, tracks) live on ``device``:
@@ -80,8 +85,8 @@ class TrainData:
 
         def move(x):
             return None if x is None else x.to(device)
-        return replace(self, images=move(self.images), masks=move(self.masks), bias_rgb=move(self.bias_rgb),
-                       bias_alpha=move(self.bias_alpha), tracks=move(self.tracks))
+
+        return replace(self, images=move(self.images), masks=move(self.masks), tracks=move(self.tracks))
 
     @property
     def views(self) -> int:
@@ -104,7 +109,7 @@ class ReconResult:
     history: dict = field(default_factory=dict)  # losses over training
     seconds: float = 0.0  # wall time of the reconstruction
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
-    hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_pick ran
+    hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
 
 
 def resize_stack(x: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
@@ -120,17 +125,18 @@ def resize_stack(x: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
-    """Downsample the grid to the training resolution (longer side = cfg.resolution)."""
+    """Downsample the grid to the training resolution (longer side = cfg.data.resolution)."""
     h, w = grid.height, grid.width
-    s = min(1.0, cfg.resolution / max(h, w))
+    s = min(1.0, cfg.data.resolution / max(h, w))
     size = (max(8, round(w * s)), max(8, round(h * s)))
     images = torch.stack([resize_stack(grid.frames[v], size) for v in range(grid.num_views)])  # [V, T, h, w, 3]
     masks = None
     if grid.masks is not None:
-        masks = torch.stack([resize_stack(grid.masks[v][..., None].astype(np.float32), size)[..., 0]
-                             for v in range(grid.num_views)])
+        masks = torch.stack(
+            [resize_stack(grid.masks[v][..., None].astype(np.float32), size)[..., 0] for v in range(grid.num_views)]
+        )
     cams = [c.resized(*size) for c in grid.cameras]
-    hold = {int(v) for v in cfg.holdout_views}
+    hold = {int(v) for v in cfg.data.holdout_views}
     from t2bs.errors import UserError
 
     if grid.canonical_view in hold:
@@ -141,12 +147,21 @@ def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
         raise UserError(f"the grid has {grid.num_frames} frame; VCDGS needs at least 2 (a rest frame and a moving one)")
     train_views = [v for v in range(grid.num_views) if v not in hold]
     shading = str((grid.meta.get("grid_config") or {}).get("shading", "lambert"))
-    if "shading" not in (grid.meta.get("grid_config") or {}) and cfg.static_shading == "auto":
+    if "shading" not in (grid.meta.get("grid_config") or {}) and cfg.static_fit.static_shading == "auto":
         # Say it: an unlit grid fitted to lit mesh renders skews the static colours.
-        print(f"warning: the grid ({grid.backend}) does not say how it was lit; the static fit assumes lambert "
-              "mesh renders (`--set static_shading=unlit` if it is unlit, or re-import it with --shading)", flush=True)
-    return TrainData(images, masks, cams, int(grid.canonical_view), train_views,
-                     shading if shading in ("unlit", "lambert") else "lambert")
+        print(
+            f"warning: the grid ({grid.backend}) does not say how it was lit; the static fit assumes lambert "
+            "mesh renders (`--set static_shading=unlit` if it is unlit, or re-import it with --shading)",
+            flush=True,
+        )
+    return TrainData(
+        images,
+        masks,
+        cams,
+        int(grid.canonical_view),
+        train_views,
+        shading if shading in ("unlit", "lambert") else "lambert",
+    )
 
 
 def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambert") -> tuple[np.ndarray, np.ndarray]:
@@ -158,69 +173,85 @@ def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambe
     return np.stack([o.rgb for o in outs]).astype(np.float32), np.stack([o.mask for o in outs]).astype(np.float32)
 
 
-def build_model(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False
-                ) -> tuple[VCDGSModel, StaticGaussians]:
+def build_model(
+    mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False
+) -> tuple[VCDGSModel, StaticGaussians]:
     """Static Gaussians (fitted) + control points -> an untrained VCDGS model.
 
     ``static_targets``: (rgb [V, H, W, 3], mask [V, H, W]) renders of the static mesh from every
-    view of ``data`` (made with the mesh renderer when None). With ``cfg.debias_static`` the
-    per-view difference between the fitted splats and these renders is stored in
-    ``data.bias_rgb`` / ``data.bias_alpha`` (see ``debias_targets``)."""
-    gs = init_static_gaussians(mesh, cfg.flatness, cfg.face_gaussians, cfg.max_face_gaussians)
-    if cfg.static_iters > 0 or cfg.debias_static:
+    view of ``data`` (made with the mesh renderer when None)."""
+    gs = init_static_gaussians(
+        mesh, cfg.static_fit.flatness, cfg.static_fit.face_gaussians, cfg.static_fit.max_face_gaussians
+    )
+    if cfg.static_fit.static_iters > 0:
         if static_targets is None:
-            shading = data.shading if cfg.static_shading == "auto" else cfg.static_shading
+            shading = data.shading if cfg.static_fit.static_shading == "auto" else cfg.static_fit.static_shading
             static_targets = static_mesh_targets(mesh, data.cameras, shading)
         rgb, mask = static_targets
         tv = data.train_views
-        gs = fit_static_gaussians(gs, rgb[tv], mask[tv], [data.cameras[v] for v in tv], cfg.static_iters, cfg.static_lr,
-                                  cfg.static_views_per_iter, cfg.seed, device=_device(cfg).type, progress=progress,
-                                  fit_colors=cfg.static_fit_colors)
-        if cfg.debias_static:
-            vm, ks = camera_tensors(data.cameras)
-            w, h = data.size
-            with torch.no_grad():
-                ft = gs.tensors()
-                sp = with_faces(torch.as_tensor(gs.means)[None], torch.as_tensor(gs.quats)[None],
-                                torch.as_tensor(gs.log_scales).exp()[None], torch.as_tensor(gs.colors)[None],
-                                ft["faces"], ft["face_colors"], ft["face_log_scale"], cfg.flatness)
-                out = render(sp[0][0], sp[1][0], sp[2][0], sp[3][0], vm, ks, w, h)
-            data.bias_rgb = out["rgb"] - torch.as_tensor(rgb, dtype=torch.float32)  # [V, H, W, 3]
-            data.bias_alpha = out["alpha"][..., 0] - torch.as_tensor(mask, dtype=torch.float32)  # [V, H, W]
-    cps = build_control_points(mesh.vertices, mesh.faces, cfg.num_control_points, cfg.knn, cfg.control_neighbours,
-                               seed=cfg.seed, min_per_part=cfg.min_part_control_points)
-    model = VCDGSModel(gs.means, gs.quats, gs.log_scales, gs.colors, cps.positions, cps.neighbours, cps.weights,
-                       data.views, data.frames, data.canonical_view, cfg, gs.faces, gs.face_colors, gs.face_log_scale)
+        gs = fit_static_gaussians(
+            gs,
+            rgb[tv],
+            mask[tv],
+            [data.cameras[v] for v in tv],
+            cfg.static_fit.static_iters,
+            cfg.static_fit.static_lr,
+            cfg.static_fit.static_views_per_iter,
+            cfg.runtime.seed,
+            device=_device(cfg).type,
+            progress=progress,
+        )
+    cps = build_control_points(
+        mesh.vertices,
+        mesh.faces,
+        cfg.control_points.num_control_points,
+        cfg.control_points.knn,
+        cfg.control_points.control_neighbours,
+        seed=cfg.runtime.seed,
+        min_per_part=cfg.control_points.min_part_control_points,
+    )
+    model = VCDGSModel(
+        gs.means,
+        gs.quats,
+        gs.log_scales,
+        gs.colors,
+        cps.positions,
+        cps.neighbours,
+        cps.weights,
+        data.views,
+        data.frames,
+        data.canonical_view,
+        cfg,
+        gs.faces,
+        gs.face_colors,
+        gs.face_log_scale,
+    )
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
     p = cps.positions
-    spacing = float(np.median(np.linalg.norm(p[:, None] - p[None], axis=-1)[np.arange(len(p))[:, None], cps.cp_neighbours][:, 0])) \
-        if cps.cp_neighbours.shape[1] else 0.05
+    spacing = (
+        float(
+            np.median(
+                np.linalg.norm(p[:, None] - p[None], axis=-1)[np.arange(len(p))[:, None], cps.cp_neighbours][:, 0]
+            )
+        )
+        if cps.cp_neighbours.shape[1]
+        else 0.05
+    )
     model.spacing = max(spacing, 1e-4)
     return model, gs
 
 
-def debias_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
-    """Targets of a batch with the static residual added: (rgb [B, H, W, 3], mask [B, H, W] | None).
-
-    One Gaussian per vertex cannot reproduce a mesh render exactly (blur, ~1 px silhouette
-    spill). Left alone, the optimiser explains that constant mismatch with geometry (it shrinks
-    the head by a few %). Adding the rest-pose residual (splats - mesh, per view) to every frame
-    of that view makes the loss measure change relative to the rest pose instead."""
+def batch_targets(data: TrainData, v_idx: torch.Tensor, t_idx: torch.Tensor):
+    """The grid's images and masks of a batch of (view, time) pairs: (rgb [B, H, W, 3], mask [B, H, W] | None)."""
     vi, ti = v_idx.to(data.images.device), t_idx.to(data.images.device)
-    rgb = data.images[vi, ti]
-    mask = None if data.masks is None else data.masks[vi, ti]
-    if data.bias_rgb is not None:
-        rgb = rgb + data.bias_rgb[vi]
-        if mask is not None and data.bias_alpha is not None:
-            mask = mask + data.bias_alpha[vi]
-    return rgb, mask
+    return data.images[vi, ti], None if data.masks is None else data.masks[vi, ti]
 
 
 def _device(cfg: VCDGSConfig) -> torch.device:
-    if cfg.device == "auto":
+    if cfg.runtime.device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    check_device(cfg.device)
-    return torch.device(cfg.device)
+    check_device(cfg.runtime.device)
+    return torch.device(cfg.runtime.device)
 
 
 def check_device(device: str) -> None:
@@ -237,9 +268,9 @@ def check_device(device: str) -> None:
 
 def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) -> dict:
     terms = {}
-    s2 = model.spacing ** 2
+    s2 = model.spacing**2
     local = out["shared"] + out["residual"]  # [B, P, 6]
-    if model.use_lbs and cfg.rigidity_weight > 0 and model.cp_neighbours.shape[1]:
+    if model.use_lbs and cfg.loss.rigidity_weight > 0 and model.cp_neighbours.shape[1]:
         import roma
 
         p, nb = model.cp, model.cp_neighbours  # [K, 3], [K, m]
@@ -247,41 +278,34 @@ def _regularisers(model: VCDGSModel, out: dict, v_idx, t_idx, cfg: VCDGSConfig) 
         tr = local[..., 3:]
         pred = matvec(rot[:, :, None], p[nb] - p[:, None]) + p[:, None] + tr[:, :, None]  # [B, K, m, 3]
         actual = p[nb] + tr[:, nb]  # [B, K, m, 3]
-        terms["rigidity"] = cfg.rigidity_weight * ((pred - actual) ** 2).sum(-1).mean() / s2
-    if cfg.local_weight > 0:
+        terms["rigidity"] = cfg.loss.rigidity_weight * ((pred - actual) ** 2).sum(-1).mean() / s2
+    if cfg.loss.local_weight > 0:
         # Sparse local motion: without it, textureless skin (unobservable except at silhouettes)
         # drifts freely; with it, whatever the images do not demand follows the global motion.
         sh = out["shared"]
         mag = (sh[..., 3:] ** 2).sum(-1) / s2 + (sh[..., :3] ** 2).sum(-1)
-        terms["local"] = cfg.local_weight * (mag + 1e-4).sqrt().mean()
-    if cfg.temporal_weight > 0 and model.frames > 1:
+        terms["local"] = cfg.loss.local_weight * (mag + 1e-4).sqrt().mean()
+    if cfg.loss.temporal_weight > 0 and model.frames > 1:
         step = torch.where(t_idx < model.frames - 1, 1, -1)
         t2 = t_idx + step
         shared2, _ = model.control_transforms(v_idx, t2, use_view=False)
         d = out["shared"] - shared2
-        terms["temporal"] = cfg.temporal_weight * ((d[..., 3:] ** 2).sum(-1).mean() / s2 + (d[..., :3] ** 2).sum(-1).mean())
-    if model.use_view and cfg.view_residual_weight > 0:
+        terms["temporal"] = cfg.loss.temporal_weight * (
+            (d[..., 3:] ** 2).sum(-1).mean() / s2 + (d[..., :3] ** 2).sum(-1).mean()
+        )
+    if model.use_view and cfg.loss.view_residual_weight > 0:
         r = out["residual"]
         reg = (r[..., 3:] ** 2).sum(-1).mean() / s2 + (r[..., :3] ** 2).sum(-1).mean()
         if out["g_residual"] is not None:
             # A global rotation by theta moves points ~radius * theta: measure both parts as motion.
             g = out["g_residual"]
             radius = model.radius
-            reg = reg + ((g[:, 3:] ** 2).sum(-1).mean() + radius ** 2 * (g[:, :3] ** 2).sum(-1).mean()) / s2
-        terms["view_residual"] = cfg.view_residual_weight * reg
-    if out["offsets"] is not None and cfg.refine_weight > 0:
+            reg = reg + ((g[:, 3:] ** 2).sum(-1).mean() + radius**2 * (g[:, :3] ** 2).sum(-1).mean()) / s2
+        terms["view_residual"] = cfg.loss.view_residual_weight * reg
+    if out["offsets"] is not None and cfg.loss.refine_weight > 0:
         dc, ds, dr = out["offsets"]
-        terms["refine"] = cfg.refine_weight * ((dc ** 2).mean() + (ds ** 2).mean() + (dr ** 2).mean())
+        terms["refine"] = cfg.loss.refine_weight * ((dc**2).mean() + (ds**2).mean() + (dr**2).mean())
     return terms
-
-
-def _global_smoothness(model: VCDGSModel) -> torch.Tensor:
-    """Mean squared second difference over frames of the shared global motion, as point motion
-    (rotation x mean radius) in units of the control-point spacing."""
-    g = model.global_se3.shared_table()  # [T, 6]
-    acc = g[2:] - 2 * g[1:-1] + g[:-2]
-    radius = model.radius
-    return ((acc[:, 3:] ** 2).sum(-1) + radius ** 2 * (acc[:, :3] ** 2).sum(-1)).mean() / model.spacing ** 2
 
 
 def _sample(gen: torch.Generator, data: TrainData, batch: int, canonical_fraction: float):
@@ -291,32 +315,6 @@ def _sample(gen: torch.Generator, data: TrainData, batch: int, canonical_fractio
     canon = torch.rand(batch, generator=gen) < canonical_fraction
     v_idx = torch.where(canon, torch.full_like(v_idx, data.canonical_view), v_idx)
     return v_idx, t_idx
-
-
-def _coarse_level(step: int, warm: int, levels: int, size: int) -> int:
-    """Downsampling exponent of the warm-up loss at ``step``: ``levels`` -> 0 linearly over the warm-up
-    (never below 16 px)."""
-    if levels <= 0 or warm <= 0:
-        return 0
-    k = int(np.ceil(levels * (1.0 - (step + 1) / warm)))
-    while k > 0 and size // (2 ** k) < 16:
-        k -= 1
-    return max(k, 0)
-
-
-def _downsample(r: dict, tgt: torch.Tensor, msk, f: int):
-    """Average-pool a render dict ([B, H, W, C]), targets and masks by ``f``."""
-    def pool(x):
-        return F.avg_pool2d(x.permute(0, 3, 1, 2), f).permute(0, 2, 3, 1)
-    r = {"rgb": pool(r["rgb"]), "alpha": pool(r["alpha"])}
-    return r, pool(tgt), None if msk is None else pool(msk[..., None])[..., 0]
-
-
-def _COARSE_CFG(cfg: VCDGSConfig) -> VCDGSConfig:
-    """The loss settings used on downsampled images: no perceptual term, no silhouette band, 2 pyramid levels."""
-    from dataclasses import replace
-
-    return replace(cfg, perceptual_weight=0.0, silhouette_band=0, pyramid_levels=min(cfg.pyramid_levels, 2))
 
 
 class _Schedule:
@@ -349,37 +347,48 @@ class _Schedule:
 
 @torch.compiler.disable
 def _render_uncompiled(*args):
-    """``render``, kept out of a compiled step (config.compile): the rasterizers are C++/CUDA kernels already, and
+    """``render``, kept out of a compiled step (config.runtime.compile): the rasterizers are C++/CUDA kernels already, and
     tracing into gsplat's Python recompiles at every new number of tile intersections."""
     return render(*args)
 
 
-def step_terms(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, v_idx: torch.Tensor, t_idx: torch.Tensor,
-               vm: torch.Tensor, ks: torch.Tensor, perceptual: PerceptualLoss, joint: bool, coarse: int = 0,
-               rest_seen: torch.Tensor | None = None) -> dict:
+def step_terms(
+    model: VCDGSModel,
+    data: TrainData,
+    cfg: VCDGSConfig,
+    v_idx: torch.Tensor,
+    t_idx: torch.Tensor,
+    vm: torch.Tensor,
+    ks: torch.Tensor,
+    perceptual: PerceptualLoss,
+    joint: bool,
+    rest_seen: torch.Tensor | None = None,
+) -> dict:
     """The loss terms of one training step on the (view, time) pairs ``v_idx``, ``t_idx`` [B] (on the model's device).
 
     vm [V, 4, 4], ks [V, 3, 3]: every view's camera (``camera_tensors``); ``joint``: the joint stage (RefineMLP and
-    the regularisers on); ``coarse``: the warm-up's downsampling exponent (``_coarse_level``); ``rest_seen`` [V, N, 3]:
+    the regularisers on); ``rest_seen`` [V, N, 3]:
     the rest pose as each view sees it (``_rest_as_seen``), needed when the track term is on. One deformation and one
     rasterization call cover the whole batch. -> {name: scalar tensor}; the loss is their sum."""
     w, h = data.size
     out = model(v_idx, t_idx, refine=joint)
     r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h)
-    tgt, msk = debias_targets(data, v_idx, t_idx)
-    if coarse > 0:
-        r, tgt, msk = _downsample(r, tgt, msk, 2 ** coarse)
-        terms = image_loss(r, tgt, msk, perceptual, _COARSE_CFG(cfg))
-    else:
-        terms = image_loss(r, tgt, msk, perceptual, cfg)
-    if data.tracks is not None and cfg.track_weight > 0:
+    tgt, msk = batch_targets(data, v_idx, t_idx)
+    terms = image_loss(r, tgt, msk, perceptual, cfg)
+    if data.tracks is not None and cfg.tracks.track_weight > 0:
         # Untextured tracks join in the joint stage only: their flow is filled in from edges and
         # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
-        terms["track"] = cfg.track_weight * track_loss(out["means"], rest_seen[v_idx], vm[v_idx], ks[v_idx], data.tracks, v_idx,
-                                                       t_idx, cfg.track_delta * max(w, h),
-                                                       flat_weight=cfg.track_flat_weight if joint else 0.0)
-    if cfg.global_smooth_weight > 0 and model.global_se3 is not None and model.frames > 2:
-        terms["global_smooth"] = cfg.global_smooth_weight * _global_smoothness(model)
+        terms["track"] = cfg.tracks.track_weight * track_loss(
+            out["means"],
+            rest_seen[v_idx],
+            vm[v_idx],
+            ks[v_idx],
+            data.tracks,
+            v_idx,
+            t_idx,
+            cfg.tracks.track_delta * max(w, h),
+            flat_weight=cfg.tracks.track_flat_weight if joint else 0.0,
+        )
     if joint:
         terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
     return terms
@@ -393,8 +402,15 @@ def _train_only_global(model: VCDGSModel, only: bool) -> None:
             mod.requires_grad_(not only)
 
 
-def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool = True,
-          checkpoint: Path | None = None, key: str = "", deadline: float | None = None) -> dict:
+def train(
+    model: VCDGSModel,
+    data: TrainData,
+    cfg: VCDGSConfig,
+    progress: bool = True,
+    checkpoint: Path | None = None,
+    key: str = "",
+    deadline: float | None = None,
+) -> dict:
     """Optimise ``model`` on ``data``; returns the loss history. Resumes from ``checkpoint``.
 
     ``deadline`` (time.time() value, optional): the schedule follows max(step fraction, elapsed-time
@@ -407,32 +423,38 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
     data = data.to(dev)
     vm, ks = camera_tensors(data.cameras, dev)
     w, h = data.size
-    perceptual = PerceptualLoss(cfg.perceptual, cfg.lpips_weights).to(dev)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    groups = {"deform": (list(model.deform.parameters()), cfg.lr_deform)}
+    perceptual = PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights).to(dev)
+    gen = torch.Generator().manual_seed(cfg.runtime.seed)
+    groups = {"deform": (list(model.deform.parameters()), cfg.optim.lr_deform)}
     if model.global_se3 is not None:
-        groups["global"] = (list(model.global_se3.parameters()), cfg.lr_global)
+        groups["global"] = (list(model.global_se3.parameters()), cfg.optim.lr_global)
     if model.refine is not None:
-        groups["refine"] = (list(model.refine.parameters()), cfg.lr_refine)
+        groups["refine"] = (list(model.refine.parameters()), cfg.optim.lr_refine)
     # fused: one kernel per optimiser step instead of ~10 operators per parameter tensor (CPU and CUDA).
     opts = {k: torch.optim.Adam(p, lr=lr, fused=True) for k, (p, lr) in groups.items()}
-    warm = cfg.global_iters if model.global_se3 is not None else 0
-    warm = min(warm, cfg.iterations - 1) if cfg.iterations > 1 else 0
+    warm = cfg.optim.global_iters if model.global_se3 is not None else 0
+    warm = min(warm, cfg.optim.iterations - 1) if cfg.optim.iterations > 1 else 0
     history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
     start = 0
     if checkpoint is not None and checkpoint.exists():
-        resumed = resume_checkpoint(checkpoint, key, model, opts, gen, cfg.iterations, dev)
+        resumed = resume_checkpoint(checkpoint, key, model, opts, gen, cfg.optim.iterations, dev)
         if resumed is not None:
             history, start = resumed
-    bar = tqdm(range(start, cfg.iterations), desc="VCDGS", leave=False, disable=not progress, initial=start,
-               total=cfg.iterations)
+    bar = tqdm(
+        range(start, cfg.optim.iterations),
+        desc="VCDGS",
+        leave=False,
+        disable=not progress,
+        initial=start,
+        total=cfg.optim.iterations,
+    )
     model.train()
-    clock = _Schedule(cfg.iterations, warm, deadline)
+    clock = _Schedule(cfg.optim.iterations, warm, deadline)
     joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
     _train_only_global(model, not joint)
     history["steps_run"] = start
     terms_fn = step_terms
-    if cfg.compile:
+    if cfg.runtime.compile:
         # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
         terms_fn = torch.compile(step_terms, dynamic=False)
     rest_seen = None  # [V, N, 3] the rest pose as each view sees it, for the track term (refreshed)
@@ -450,13 +472,16 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
         for k, o in opts.items():
             base = groups[k][1]
             for g in o.param_groups:
-                g["lr"] = base * (cfg.lr_final_ratio ** frac if joint else 1.0)
-        v_idx, t_idx = _sample(gen, data, cfg.batch_size, cfg.canonical_fraction)
+                g["lr"] = base * (cfg.optim.lr_final_ratio**frac if joint else 1.0)
+        v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, cfg.optim.canonical_fraction)
         v_idx, t_idx = v_idx.to(dev), t_idx.to(dev)
-        if data.tracks is not None and cfg.track_weight > 0 and (rest_seen is None or step % cfg.track_refresh == 0):
+        if (
+            data.tracks is not None
+            and cfg.tracks.track_weight > 0
+            and (rest_seen is None or step % cfg.tracks.track_refresh == 0)
+        ):
             rest_seen = _rest_as_seen(model, data.views)
-        k = _coarse_level(step, warm, cfg.global_coarse, min(w, h)) if not joint else 0
-        terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, coarse=k, rest_seen=rest_seen)
+        terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, rest_seen=rest_seen)
         img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
         loss = sum(terms.values())
         for o in opts.values():
@@ -469,27 +494,41 @@ def train(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, progress: bool =
             opts["global"].step()
         if history["first_image_loss"] is None:
             history["first_image_loss"] = float(img)
-        if step % 10 == 0 or step == cfg.iterations - 1:
+        if step % 10 == 0 or step == cfg.optim.iterations - 1:
             history["terms"] = {k: round(float(v.detach()), 6) for k, v in terms.items()}
             history["step"].append(step)
             history["loss"].append(float(loss.detach()))
             history["image"].append(float(img))
             bar.set_postfix(stage="joint" if joint else "global", loss=f"{float(loss.detach()):.4f}")
-        if checkpoint is not None and cfg.checkpoint_every and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
+        if (
+            checkpoint is not None
+            and cfg.runtime.checkpoint_every
+            and (step + 1) % cfg.runtime.checkpoint_every == 0
+            and step + 1 < cfg.optim.iterations
+        ):
             from t2bs.project import atomic_path
 
             with atomic_path(checkpoint) as tmp:
-                torch.save({"key": key, "step": step + 1, "model": model.state_dict(),
-                            "opts": {k: o.state_dict() for k, o in opts.items()}, "gen": gen.get_state(),
-                            "history": history}, tmp)
+                torch.save(
+                    {
+                        "key": key,
+                        "step": step + 1,
+                        "model": model.state_dict(),
+                        "opts": {k: o.state_dict() for k, o in opts.items()},
+                        "gen": gen.get_state(),
+                        "history": history,
+                    },
+                    tmp,
+                )
     _train_only_global(model, False)
     model.eval()
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
     return history
 
 
-def resume_checkpoint(path: Path, key: str, model: VCDGSModel, opts: dict, gen: torch.Generator, iterations: int,
-                      dev) -> tuple[dict, int] | None:
+def resume_checkpoint(
+    path: Path, key: str, model: VCDGSModel, opts: dict, gen: torch.Generator, iterations: int, dev
+) -> tuple[dict, int] | None:
     """Load a training checkpoint into ``model``/``opts``/``gen``; (history, step), or None to start fresh.
 
     A project folder may come from someone else, so nothing in it is executed: the file is read
@@ -509,19 +548,31 @@ def resume_checkpoint(path: Path, key: str, model: VCDGSModel, opts: dict, gen: 
     except Exception as exc:  # truncated zip, a pickle with code in it, not a torch file: all untrusted input
         import pickle
 
-        why = ("it holds objects other than tensors and plain values (possibly code), refused unexecuted"
-               if isinstance(exc, pickle.UnpicklingError) else f"it is not a readable checkpoint ({type(exc).__name__})")
+        why = (
+            "it holds objects other than tensors and plain values (possibly code), refused unexecuted"
+            if isinstance(exc, pickle.UnpicklingError)
+            else f"it is not a readable checkpoint ({type(exc).__name__})"
+        )
         discard(f"checkpoint does not load: {why}")
         return None
     if not isinstance(ck, dict) or ck.get("key") != key:
         discard("checkpoint belongs to other inputs or settings (its key differs)")
         return None
     step, history = ck.get("step"), ck.get("history")
-    if not isinstance(step, int) or not 0 <= step <= iterations or not isinstance(history, dict) \
-            or not isinstance(ck.get("opts"), dict) or set(ck["opts"]) != set(opts):
+    if (
+        not isinstance(step, int)
+        or not 0 <= step <= iterations
+        or not isinstance(history, dict)
+        or not isinstance(ck.get("opts"), dict)
+        or set(ck["opts"]) != set(opts)
+    ):
         discard("checkpoint is malformed (step, history or optimiser state)")
         return None
-    saved = (copy.deepcopy(model.state_dict()), {k: copy.deepcopy(o.state_dict()) for k, o in opts.items()}, gen.get_state())
+    saved = (
+        copy.deepcopy(model.state_dict()),
+        {k: copy.deepcopy(o.state_dict()) for k, o in opts.items()},
+        gen.get_state(),
+    )
     try:
         model.load_state_dict(ck["model"])
         for k, o in opts.items():
@@ -550,7 +601,6 @@ def _rest_as_seen(model: VCDGSModel, views: int) -> torch.Tensor:
 
 def static_splats(model: VCDGSModel, batch: int) -> dict:
     """The rest-pose Gaussians (vertex + face), repeated ``batch`` times, as ``model.forward`` returns them."""
-    from t2bs.recon.gaussians import with_faces
 
     x, q = model.means[None].expand(batch, -1, -1), model.quats[None].expand(batch, -1, -1)
     s, c = model.log_scales.exp()[None].expand(batch, -1, -1), model.colors[None].expand(batch, -1, -1)
@@ -575,24 +625,33 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
             else:
                 out = static_splats(model, len(t_idx))
             r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
-            tgt = debias_targets(data, v_idx, t_idx)[0].to(dev)
-            total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.huber_delta)) * len(t_idx)
+            tgt = batch_targets(data, v_idx, t_idx)[0].to(dev)
+            total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.loss.huber_delta)) * len(t_idx)
             count += len(t_idx)
     return total / max(count, 1)
 
 
-def reconstruct_grid(mesh: Mesh, grid, cfg: VCDGSConfig, progress: bool = True, static_targets=None,
-                     checkpoint: Path | None = None, key: str = "") -> ReconResult:
+def reconstruct_grid(
+    mesh: Mesh,
+    grid,
+    cfg: VCDGSConfig,
+    progress: bool = True,
+    static_targets=None,
+    checkpoint: Path | None = None,
+    key: str = "",
+) -> ReconResult:
     """The whole VCDGS job for one grid: data, static fit, control points, training, extraction."""
     from t2bs.errors import UserError
 
     cfg.validate()
     if grid.gt_vertices is not None and grid.gt_vertices.shape[1] != mesh.num_vertices:
-        raise UserError(f"grid ground truth has {grid.gt_vertices.shape[1]} vertices but the character has {mesh.num_vertices}")
-    torch.manual_seed(cfg.seed)
+        raise UserError(
+            f"grid ground truth has {grid.gt_vertices.shape[1]} vertices but the character has {mesh.num_vertices}"
+        )
+    torch.manual_seed(cfg.runtime.seed)
     threads = torch.get_num_threads()
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
+    if cfg.runtime.threads > 0:
+        torch.set_num_threads(cfg.runtime.threads)
     try:
         return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key)
     finally:
@@ -604,37 +663,58 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
 
     t0 = time.time()
     data = prepare_data(grid, cfg)
-    if cfg.track_weight > 0:
+    if cfg.tracks.track_weight > 0:
         side = max(data.size)
-        views = data.train_views if cfg.track_views == "all" else [data.canonical_view]
-        data.tracks = compute_tracks(mesh, data.images, data.cameras, views, cfg.track_fb * side, cfg.track_blur * side,
-                                     progress, min_texture=cfg.track_min_texture, chain=cfg.track_chain,
-                                     agree_px=cfg.track_agree * side, flow_size=cfg.track_flow_size)
+        views = data.train_views
+        data.tracks = compute_tracks(
+            mesh,
+            data.images,
+            data.cameras,
+            views,
+            cfg.tracks.track_fb * side,
+            cfg.tracks.track_blur * side,
+            progress,
+            min_texture=cfg.tracks.track_min_texture,
+            chain=cfg.tracks.track_chain,
+            agree_px=cfg.tracks.track_agree * side,
+            flow_size=cfg.tracks.track_flow_size,
+        )
     model, _ = build_model(mesh, data, cfg, static_targets, progress)
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
-    deadline = t0 + cfg.time_budget_s - 5.0 if cfg.time_budget_s > 0 else None
+    deadline = t0 + cfg.optim.time_budget_s - 5.0 if cfg.optim.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
-    verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output_smoothing)
+    verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
     pick = None
-    if cfg.hidden_pick:
+    if cfg.hidden_parts.hidden_pick:
         verts, pick = _pick_hidden(mesh, verts, data, cfg)
     return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"), pick)
 
 
 def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfig) -> tuple[np.ndarray, dict]:
-    """config.hidden_pick: the hidden parts' motion picked by render (recon/hidden_parts.py)."""
+    """config.hidden_parts.hidden_pick: the hidden parts' motion picked by render (recon/hidden_parts.py)."""
     from t2bs.recon.hidden_parts import compare_views, pick_hidden_motions
     from t2bs.recon.tracks import rest_visibility
 
     seen = rest_visibility(mesh, data.cameras, data.train_views).any(0)
-    views = compare_views(data.cameras, data.canonical_view, data.train_views, cfg.hidden_pick_views)
+    views = compare_views(data.cameras, data.canonical_view, data.train_views, cfg.hidden_parts.hidden_pick_views)
     frames = list(range(1, data.frames, 2))  # every other frame after the rest pose
-    verts, report = pick_hidden_motions(mesh, verts, seen, data.images.cpu().numpy(), data.cameras, views, frames,
-                                        data.shading, cfg.hidden_pick_clusters, cfg.hidden_pick_min_vertices,
-                                        seed=cfg.seed, closed_rigid=cfg.hidden_pick_closed_rigid)
+    verts, report = pick_hidden_motions(
+        mesh,
+        verts,
+        seen,
+        data.images.cpu().numpy(),
+        data.cameras,
+        views,
+        frames,
+        data.shading,
+        cfg.hidden_parts.hidden_pick_clusters,
+        cfg.hidden_parts.hidden_pick_min_vertices,
+        seed=cfg.runtime.seed,
+        closed_rigid=cfg.hidden_parts.hidden_pick_closed_rigid,
+        side_fraction=cfg.hidden_parts.hidden_pick_side_fraction,
+        even=cfg.hidden_parts.hidden_pick_even,
+    )
     return verts, report.summary()
-
-
 
 
 def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
@@ -650,11 +730,24 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
     try:
         state = torch.load(state_path, map_location="cpu", weights_only=True)
         sd, raw = state["model"], dict(state["config"])
-        cfg = VCDGSConfig(**{**raw, "holdout_views": tuple(raw.get("holdout_views", ()))})
+        cfg = VCDGSConfig.from_dict(raw)
         faces = sd.get("faces")
-        model = VCDGSModel(sd["means"], sd["quats"], sd["log_scales"], sd["colors"], sd["cp"], sd["neighbours"],
-                           sd["weights"], int(state["views"]), int(state["frames"]), int(state["canonical_view"]), cfg,
-                           faces, sd.get("face_colors"), sd.get("face_log_scale"))
+        model = VCDGSModel(
+            sd["means"],
+            sd["quats"],
+            sd["log_scales"],
+            sd["colors"],
+            sd["cp"],
+            sd["neighbours"],
+            sd["weights"],
+            int(state["views"]),
+            int(state["frames"]),
+            int(state["canonical_view"]),
+            cfg,
+            faces,
+            sd.get("face_colors"),
+            sd.get("face_log_scale"),
+        )
         model.register_buffer("cp_neighbours", sd["cp_neighbours"])
         model.load_state_dict(sd)
     except UserError:

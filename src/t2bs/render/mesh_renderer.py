@@ -87,7 +87,9 @@ void main() {
 class RenderResult:
     rgb: np.ndarray  # [H, W, 3] float32 in [0, 1], background filled
     depth: np.ndarray  # [H, W] float32 camera-space z (OpenCV, > 0); inf on background
-    normal: np.ndarray  # [H, W, 3] float32 world-space geometric (per-triangle) normals facing the camera; 0 on background
+    normal: (
+        np.ndarray
+    )  # [H, W, 3] float32 world-space geometric (per-triangle) normals facing the camera; 0 on background
     mask: np.ndarray  # [H, W] bool foreground
     face_id: np.ndarray  # [H, W] int32 triangle index; -1 on background
 
@@ -145,9 +147,17 @@ class MeshRenderer:
             self._texture_key = key
         self._texture.use(0)
 
-    def render(self, mesh: Mesh, camera: Camera, vertices: np.ndarray | None = None, shading: str = "lambert",
-               background=(1.0, 1.0, 1.0), ambient: float = 0.35, vertex_colors: np.ndarray | None = None,
-               texture: np.ndarray | None = None) -> RenderResult:
+    def render(
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        vertices: np.ndarray | None = None,
+        shading: str = "lambert",
+        background=(1.0, 1.0, 1.0),
+        ambient: float = 0.35,
+        vertex_colors: np.ndarray | None = None,
+        texture: np.ndarray | None = None,
+    ) -> RenderResult:
         """Draw ``mesh`` (optionally posed: ``vertices`` [N, 3]) from ``camera``.
 
         ``shading``: "lambert" (headlight + key light) or "unlit" (colour as is, ambient = 1).
@@ -165,13 +175,20 @@ class MeshRenderer:
         colors = vertex_colors if vertex_colors is not None else (mesh.vertex_rgb() if not use_texture else None)
         n = len(verts)
         data = [verts, vertex_normals(verts, mesh.faces)]
-        data.append(np.ascontiguousarray(colors, dtype=np.float32) if colors is not None else np.zeros((n, 3), np.float32))
+        data.append(
+            np.ascontiguousarray(colors, dtype=np.float32) if colors is not None else np.zeros((n, 3), np.float32)
+        )
         data.append(np.ascontiguousarray(mesh.uv, dtype=np.float32) if use_texture else np.zeros((n, 2), np.float32))
         buffers = [self.ctx.buffer(d.tobytes()) for d in data]
         ibo = self.ctx.buffer(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
         vao = self.ctx.vertex_array(
             self.program,
-            [(buffers[0], "3f", "in_position"), (buffers[1], "3f", "in_normal"), (buffers[2], "3f", "in_color"), (buffers[3], "2f", "in_uv")],
+            [
+                (buffers[0], "3f", "in_position"),
+                (buffers[1], "3f", "in_normal"),
+                (buffers[2], "3f", "in_color"),
+                (buffers[3], "2f", "in_uv"),
+            ],
             index_buffer=ibo,
             index_element_size=4,
         )
@@ -204,8 +221,14 @@ class MeshRenderer:
         normal = np.where(mask[..., None], nd[..., :3], 0.0).astype(np.float32)
         return RenderResult(np.clip(rgb, 0, 1).astype(np.float32), depth, normal, mask, np.ascontiguousarray(face))
 
-    def vertex_visibility(self, mesh: Mesh, camera: Camera, vertices: np.ndarray | None = None,
-                          tolerance: float = 0.004, min_size: int = 0) -> np.ndarray:
+    def vertex_visibility(
+        self,
+        mesh: Mesh,
+        camera: Camera,
+        vertices: np.ndarray | None = None,
+        tolerance: float = 0.004,
+        min_size: int = 0,
+    ) -> np.ndarray:
         """[N] bool: vertex inside the image and not hidden by nearer geometry (depth test).
 
         ``tolerance`` is in world units (the canonical bbox diagonal is 1.2): a vertex counts as

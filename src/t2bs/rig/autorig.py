@@ -35,15 +35,58 @@ from t2bs.rig.face import FaceLandmarks, fit_sphere
 
 # Apple's ARKit blend shape locations (ARFaceAnchor.BlendShapeLocation), all 52.
 ARKIT_NAMES = [
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff",
-    "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight",
-    "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight",
-    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft", "jawOpen", "jawRight",
-    "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft", "mouthFrownRight", "mouthFunnel",
-    "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight", "mouthPucker",
-    "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmileLeft",
-    "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-    "noseSneerLeft", "noseSneerRight", "tongueOut",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeLookDownLeft",
+    "eyeLookDownRight",
+    "eyeLookInLeft",
+    "eyeLookInRight",
+    "eyeLookOutLeft",
+    "eyeLookOutRight",
+    "eyeLookUpLeft",
+    "eyeLookUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "noseSneerLeft",
+    "noseSneerRight",
+    "tongueOut",
 ]
 NOT_MODELLED = "lip roll / press / close need the lips' volume, which the auto rig does not model"
 # Positions in the 20 landmarks (68-point order 36-47, 60-67).
@@ -56,7 +99,9 @@ LOWER_LIP = {"left": 17, "mid": 18, "right": 19}
 @dataclass
 class AutoRigConfig:
     jaw_open: float = 0.8  # lower-lip travel of a full jawOpen along its arc, in mouth widths (ARKit 1 = fully open)
-    lid_meet: float = 0.2  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid (human lower lids move little)
+    lid_meet: float = (
+        0.2  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid (human lower lids move little)
+    )
     smile: float = 0.22  # mouth-corner travel of a full smile, in mouth widths
     frown: float = 0.12  # mouth-corner travel of a full frown, in mouth widths
     brow: float = 0.10  # brow travel, in inter-ocular distances
@@ -72,8 +117,12 @@ class AutoRig:
     info: dict = field(default_factory=dict)  # hinge, eye centres, mouth seam or sealed, jaw angle
 
     def summary(self) -> dict:
-        return {"shapes": list(self.morph_targets), "missing": dict(self.missing),
-                "landmarks": self.landmarks.to_dict(), **self.info}
+        return {
+            "shapes": list(self.morph_targets),
+            "missing": dict(self.missing),
+            "landmarks": self.landmarks.to_dict(),
+            **self.info,
+        }
 
 
 def _falloff(t: np.ndarray) -> np.ndarray:
@@ -113,7 +162,9 @@ class Surface:
         if glue > 0:
             from scipy.spatial import cKDTree
 
-            _, part = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m)), directed=False)
+            _, part = connected_components(
+                coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m)), directed=False
+            )
             pairs = cKDTree(vn).query_pairs(glue, output_type="ndarray")
             ok = part[pairs[:, 0]] != part[pairs[:, 1]]
             if exclude is not None:
@@ -133,8 +184,9 @@ class Surface:
         if len(nodes) == 0:
             n = len(self.node)
             return np.full(n, np.inf), np.full(n, -1)
-        d, _, src = dijkstra(self.graph, directed=False, indices=nodes, min_only=True, limit=limit,
-                             return_predecessors=True)
+        d, _, src = dijkstra(
+            self.graph, directed=False, indices=nodes, min_only=True, limit=limit, return_predecessors=True
+        )
         return d[self.node], src[self.node]
 
     def path(self, a: int, b: int) -> np.ndarray:
@@ -152,6 +204,7 @@ class Surface:
 @dataclass
 class _Face:
     """Measurements of the face the deformers are scaled by (canonical frame)."""
+
     v: np.ndarray  # [N, 3] float64 vertices
     normals: np.ndarray  # [N, 3] unit vertex normals
     P: np.ndarray  # [20, 3] landmark positions
@@ -186,8 +239,10 @@ class _Face:
 def _check_landmarks(P: np.ndarray) -> None:
     eye_r, eye_l, mouth = P[0:6].mean(0), P[6:12].mean(0), P[12:20]
     if eye_l[0] <= eye_r[0]:
-        raise UserError("landmarks: the left eye (42-47) must be on the character's left (+X) of the right eye (36-41); "
-                        "check the 68-point order or the mesh's facing")
+        raise UserError(
+            "landmarks: the left eye (42-47) must be on the character's left (+X) of the right eye (36-41); "
+            "check the 68-point order or the mesh's facing"
+        )
     if min(eye_l[1], eye_r[1]) <= mouth[:, 1].mean():
         raise UserError("landmarks: the eyes must be above the mouth (Y up); check the order or the mesh's up axis")
     if P[16, 0] <= P[12, 0]:
@@ -205,9 +260,17 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     eyeballs = {s: np.asarray(e, np.int64) for s, e in landmarks.eyeballs.items()}
     for e in eyeballs.values():
         skin[e] = False
-    f = _Face(v, vertex_normals(v, mesh.faces).astype(np.float64), P, ids, skin,
-              float(np.linalg.norm(P[6:12].mean(0) - P[0:6].mean(0))), float(np.linalg.norm(P[16] - P[12])),
-              float(0.5 * (P[0:6, 1].mean() + P[6:12, 1].mean()) - P[12:20, 1].mean()), P[12:20].mean(0))
+    f = _Face(
+        v,
+        vertex_normals(v, mesh.faces).astype(np.float64),
+        P,
+        ids,
+        skin,
+        float(np.linalg.norm(P[6:12].mean(0) - P[0:6].mean(0))),
+        float(np.linalg.norm(P[16] - P[12])),
+        float(0.5 * (P[0:6, 1].mean() + P[6:12, 1].mean()) - P[12:20, 1].mean()),
+        P[12:20].mean(0),
+    )
     surf = Surface(v, mesh.faces)
     fo = config.falloff
     shapes: dict[str, np.ndarray] = {}
@@ -219,7 +282,9 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     info.update(jaw_info)
     lower_mid = P[LOWER_LIP["mid"]]
     radius = float(np.hypot(*(lower_mid - hinge)[1:]))
-    angle = float(np.clip(config.jaw_open * f.mw / max(radius, 1e-9), np.radians(8), np.radians(30)))  # a human jaw opens ~25-30 degrees
+    angle = float(
+        np.clip(config.jaw_open * f.mw / max(radius, 1e-9), np.radians(8), np.radians(30))
+    )  # a human jaw opens ~25-30 degrees
     info["jaw_angle_deg"] = round(float(np.degrees(angle)), 2)
     turned = rotate_about(v, hinge, np.array([1.0, 0, 0]), angle)
     shapes["jawOpen"] = w_jaw[:, None] * (turned - v)
@@ -251,8 +316,12 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
         c, _, _ = fit_sphere(v[ball])
         out_sign = 1.0 if side == "left" else -1.0
         a = np.radians(config.eye_look_deg)
-        for d, axis, ang in (("Up", [1, 0, 0], -a), ("Down", [1, 0, 0], a), ("Out", [0, 1, 0], out_sign * a),
-                             ("In", [0, 1, 0], -out_sign * a)):
+        for d, axis, ang in (
+            ("Up", [1, 0, 0], -a),
+            ("Down", [1, 0, 0], a),
+            ("Out", [0, 1, 0], out_sign * a),
+            ("In", [0, 1, 0], -out_sign * a),
+        ):
             off = np.zeros_like(v)
             off[ball] = rotate_about(v[ball], c, np.asarray(axis, float), ang) - v[ball]
             shapes[f"eyeLook{d}{cap}"] = off
@@ -267,7 +336,9 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     d_up, _ = surf.distance(ids[[13, 14, 15]])
     d_lo, _ = surf.distance(ids[[17, 18, 19]])
     with np.errstate(invalid="ignore"):  # parts neither lip reaches: nan, no mouth weight there
-        upper_side = np.nan_to_num(np.clip((d_lo - d_up) / (0.1 * f.mw) + 0.5, 0.0, 1.0), nan=0.5)  # 1: upper lip's side
+        upper_side = np.nan_to_num(
+            np.clip((d_lo - d_up) / (0.1 * f.mw) + 0.5, 0.0, 1.0), nan=0.5
+        )  # 1: upper lip's side
     up, fwd = np.array([0, 1.0, 0]), np.array([0, 0, 1.0])
     mouth_d, _ = surf.distance(ids[12:20], limit=0.7 * f.mw * fo)
     for side in ("left", "right"):
@@ -275,7 +346,9 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
         out = np.array([1.0 if side == "left" else -1.0, 0, 0])
         corner = ids[MOUTH_CORNER[side]]
         d_c, _ = surf.distance([corner], limit=0.9 * f.mw * fo)
-        shapes[f"mouthSmile{cap}"] = _push(f, d_c, 0.8 * f.mw * fo, _unit(0.5 * out + 0.75 * up - 0.3 * fwd), config.smile * f.mw)
+        shapes[f"mouthSmile{cap}"] = _push(
+            f, d_c, 0.8 * f.mw * fo, _unit(0.5 * out + 0.75 * up - 0.3 * fwd), config.smile * f.mw
+        )
         shapes[f"mouthFrown{cap}"] = _push(f, d_c, 0.6 * f.mw * fo, _unit(0.3 * out - 0.9 * up), config.frown * f.mw)
         shapes[f"mouthDimple{cap}"] = _push(f, d_c, 0.5 * f.mw * fo, _unit(0.4 * out - 0.9 * fwd), 0.08 * f.mw)
         shapes[f"mouthStretch{cap}"] = _push(f, d_c, 0.7 * f.mw * fo, _unit(0.8 * out - 0.5 * up), 0.15 * f.mw)
@@ -396,13 +469,21 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     chin_y = v[named["chin"], 1] if "chin" in named else max(f.mc[1] - 0.75 * f.em, lo[1])
     seam = f.seam_y(v[:, 0])
     x_mouth = np.abs(v[:, 0] - f.mc[0]) < 0.6 * f.mw
-    lower = f.skin & x_mouth & (v[:, 1] < seam - 0.15 * f.em) & (v[:, 1] > chin_y - 0.1 * f.em) & (v[:, 2] > f.mc[2] - 0.5 * f.em)
+    lower = (
+        f.skin
+        & x_mouth
+        & (v[:, 1] < seam - 0.15 * f.em)
+        & (v[:, 1] > chin_y - 0.1 * f.em)
+        & (v[:, 2] > f.mc[2] - 0.5 * f.em)
+    )
     lower[ids[[17, 18, 19]]] = True
     if "chin" in named:
         lower[named["chin"]] = True
     static = f.skin & ((v[:, 1] > f.mc[1] + 0.45 * f.em) | (v[:, 2] < hinge[2]) | (v[:, 1] < chin_y - 0.3 * f.em))
     static[ids[[13, 14, 15]]] = True
-    if "jaw" in mesh.part_names:  # a labelled jaw (procedural characters): it and the lower lip are the jaw, the head stays
+    if (
+        "jaw" in mesh.part_names
+    ):  # a labelled jaw (procedural characters): it and the lower lip are the jaw, the head stays
         lower |= mesh.part_mask(*[n for n in ("jaw", "lip_lower") if n in mesh.part_names])
         if "head" in mesh.part_names:
             static |= mesh.part_mask("head")
@@ -436,8 +517,11 @@ def _jaw_weights(mesh: Mesh, f: _Face, surf: Surface, landmarks: FaceLandmarks, 
     d_ul, _ = surf.distance([ids[14]])
     gap = float(np.linalg.norm(v[ids[14]] - v[ids[18]]))
     sealed = bool(d_ul[ids[18]] < 2.5 * gap + 1e-6 * mesh.bbox_diagonal())
-    info = {"mouth": "sealed: the lips stretch apart, no cavity opens" if sealed else "lip seam: the lips part",
-            "mouth_sealed": sealed, "jaw_rigid_parts": rigid_parts}
+    info = {
+        "mouth": "sealed: the lips stretch apart, no cavity opens" if sealed else "lip seam: the lips part",
+        "mouth_sealed": sealed,
+        "jaw_rigid_parts": rigid_parts,
+    }
     return w, hinge, info
 
 
@@ -457,8 +541,14 @@ def _smooth_on(surf: Surface, idx: np.ndarray, w: np.ndarray, iterations: int = 
     return out
 
 
-def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: AutoRigConfig,
-          attached: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+def _lids(
+    f: _Face,
+    surf: Surface,
+    side: str,
+    ball: np.ndarray | None,
+    config: AutoRigConfig,
+    attached: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
     """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line)."""
     v, pts, pid = f.v, f.P[EYES[side]], f.ids[EYES[side]]
     we = float(np.linalg.norm(pts[0] - pts[3]))
@@ -478,12 +568,16 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
 
     th_u, th_l = float(elevation(pts[[1, 2]]).mean()), float(elevation(pts[[4, 5]]).mean())
     if th_u <= th_l:
-        raise UserError(f"landmarks: the {side} eye's upper lid points (37-38 / 43-44) are not above its lower lid points")
+        raise UserError(
+            f"landmarks: the {side} eye's upper lid points (37-38 / 43-44) are not above its lower lid points"
+        )
     th_m = th_l + config.lid_meet * (th_u - th_l)
     eye_h = float(np.mean(np.linalg.norm(pts[[1, 2]] - pts[[5, 4]], axis=1)))
 
     def margin(order):
-        nodes = np.concatenate([surf.path(pid[a], pid[b])[:-1] for a, b in zip(order[:-1], order[1:])] + [[surf.node[pid[order[-1]]]]])
+        nodes = np.concatenate(
+            [surf.path(pid[a], pid[b])[:-1] for a, b in zip(order[:-1], order[1:])] + [[surf.node[pid[order[-1]]]]]
+        )
         pos = v[surf.first[nodes]]
         s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
         s = s / max(s[-1], 1e-12)
@@ -500,8 +594,12 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
         gate_u = np.clip((d_l - d_u) / (0.3 * eye_h), 0.0, 1.0)
         gate_l = np.clip((d_u - d_l) / (0.3 * eye_h), 0.0, 1.0)
-    w_u = np.where(src_u >= 0, up_prof[np.maximum(src_u, 0)], 0.0) * _falloff(d_u / r_u) * np.nan_to_num(gate_u, nan=1.0)
-    w_l = np.where(src_l >= 0, lo_prof[np.maximum(src_l, 0)], 0.0) * _falloff(d_l / r_l) * np.nan_to_num(gate_l, nan=1.0)
+    w_u = (
+        np.where(src_u >= 0, up_prof[np.maximum(src_u, 0)], 0.0) * _falloff(d_u / r_u) * np.nan_to_num(gate_u, nan=1.0)
+    )
+    w_l = (
+        np.where(src_l >= 0, lo_prof[np.maximum(src_l, 0)], 0.0) * _falloff(d_l / r_l) * np.nan_to_num(gate_l, nan=1.0)
+    )
     w_u = np.where(np.isfinite(d_u), w_u, 0.0) * f.skin
     w_l = np.where(np.isfinite(d_l), w_l, 0.0) * f.skin
     if attached is not None and len(attached[0]):  # parts on the lid (lashes) turn with it
@@ -535,12 +633,18 @@ def _lids(f: _Face, surf: Surface, side: str, ball: np.ndarray | None, config: A
         off[idx] = moved - v[idx]
         return off
 
-    info = {"centre": [round(float(x), 5) for x in centre], "radius": round(float(r_ball), 5),
-            "eyeball_part": ball is not None and len(ball) >= 4, "closing_deg": round(float(np.degrees(th_u - th_l)), 2)}
+    info = {
+        "centre": [round(float(x), 5) for x in centre],
+        "radius": round(float(r_ball), 5),
+        "eyeball_part": ball is not None and len(ball) >= 4,
+        "closing_deg": round(float(np.degrees(th_u - th_l)), 2),
+    }
     return {"move": move, "w_upper": w_u, "info": info}
 
 
-def _brows(f: _Face, surf: Surface, landmarks: FaceLandmarks, mesh: Mesh, config: AutoRigConfig, upper_lid: np.ndarray) -> dict:
+def _brows(
+    f: _Face, surf: Surface, landmarks: FaceLandmarks, mesh: Mesh, config: AutoRigConfig, upper_lid: np.ndarray
+) -> dict:
     """browInnerUp, browOuterUp*, browDown*: labelled brow parts move whole; else skin above each eye."""
     v, named = f.v, landmarks.named
     up = np.array([0, 1.0, 0])
@@ -559,7 +663,11 @@ def _brows(f: _Face, surf: Surface, landmarks: FaceLandmarks, mesh: Mesh, config
             mask = mesh.part_mask("brow") & (np.sign(v[:, 0] - f.mc[0]) == sgn)
             if mask.any():
                 bx = v[mask, 0]
-                inner_w = np.clip((bx.max() - bx) / max(np.ptp(bx), 1e-9), 0, 1) if sgn > 0 else np.clip((bx - bx.min()) / max(np.ptp(bx), 1e-9), 0, 1)
+                inner_w = (
+                    np.clip((bx.max() - bx) / max(np.ptp(bx), 1e-9), 0, 1)
+                    if sgn > 0
+                    else np.clip((bx - bx.min()) / max(np.ptp(bx), 1e-9), 0, 1)
+                )
                 ow = np.zeros(len(v))
                 ow[mask] = 1 - inner_w
                 iw = np.zeros(len(v))
@@ -578,11 +686,12 @@ def _brows(f: _Face, surf: Surface, landmarks: FaceLandmarks, mesh: Mesh, config
         d_o, _ = surf.distance([outer], limit=r)
         out[f"browOuterUp{cap}"] = _push(f, d_o, r, up, amount) * lid_still[:, None]
         d_d, _ = surf.distance([mid, inner], limit=1.1 * r)
-        out[f"browDown{cap}"] = _push(f, d_d, 1.1 * r, _unit(-0.9 * up + np.array([-0.4 * sgn, 0, 0])), amount) * lid_still[:, None]
+        out[f"browDown{cap}"] = (
+            _push(f, d_d, 1.1 * r, _unit(-0.9 * up + np.array([-0.4 * sgn, 0, 0])), amount) * lid_still[:, None]
+        )
         d_i, _ = surf.distance([inner], limit=r)
         inner_seeds.append(_falloff(d_i / r) * f.skin * lid_still)
     if inner_seeds:
         w = np.maximum(inner_seeds[0], inner_seeds[1]) if len(inner_seeds) == 2 else inner_seeds[0]
         out["browInnerUp"] = w[:, None] * (f.tangent(up) if "brow" not in mesh.part_names else up[None]) * amount
     return out
-

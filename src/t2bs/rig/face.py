@@ -31,17 +31,34 @@ from t2bs.errors import UserError
 from t2bs.geometry.mesh import Mesh, welded_components
 
 # Optional named vertices a landmarks file may add (the 20 are enough; these refine the rig).
-NAMED_POINTS = ("brow_left", "brow_right", "brow_inner_left", "brow_inner_right", "brow_outer_left",
-                "brow_outer_right", "chin", "jaw_hinge")
+NAMED_POINTS = (
+    "brow_left",
+    "brow_right",
+    "brow_inner_left",
+    "brow_inner_right",
+    "brow_outer_left",
+    "brow_outer_right",
+    "chin",
+    "jaw_hinge",
+)
 # MediaPipe face-mesh indices of the named points (subject's left = character's left = +X).
-MEDIAPIPE_NAMED = {"brow_right": 105, "brow_left": 334, "brow_inner_right": 107, "brow_inner_left": 336,
-                   "brow_outer_right": 70, "brow_outer_left": 300, "chin": 152}
+MEDIAPIPE_NAMED = {
+    "brow_right": 105,
+    "brow_left": 334,
+    "brow_inner_right": 107,
+    "brow_inner_left": 336,
+    "brow_outer_right": 70,
+    "brow_outer_left": 300,
+    "chin": 152,
+}
 # Positions in the 20 whose point lies on an upper edge (upper lid, upper inner lip) or a lower edge.
 UPPER_POINTS = (1, 2, 7, 8, 13, 14, 15)
 LOWER_POINTS = (4, 5, 10, 11, 17, 18, 19)
-HOW_TO = ("give them with --landmarks FILE: {\"vertex_ids\": [20 vertex ids in the 68-point order 36-47, 60-67]} "
-          "(the JSON `t2bs landmarks --show` writes; optional named ids: " + ", ".join(NAMED_POINTS) + "), "
-          "or click them on the character in `t2bs view DIR` (folder Landmarks)")
+HOW_TO = (
+    'give them with --landmarks FILE: {"vertex_ids": [20 vertex ids in the 68-point order 36-47, 60-67]} '
+    "(the JSON `t2bs landmarks --show` writes; optional named ids: " + ", ".join(NAMED_POINTS) + "), "
+    "or click them on the character in `t2bs view DIR` (folder Landmarks)"
+)
 
 
 @dataclass
@@ -52,8 +69,12 @@ class FaceLandmarks:
     eyeballs: dict[str, np.ndarray] = field(default_factory=dict)  # "left"/"right" -> [M] vertex ids
 
     def to_dict(self) -> dict:
-        return {"vertex_ids": self.vertex_ids.tolist(), "source": self.source, "named": dict(self.named),
-                "eyeballs": {k: int(len(v)) for k, v in self.eyeballs.items()}}
+        return {
+            "vertex_ids": self.vertex_ids.tolist(),
+            "source": self.source,
+            "named": dict(self.named),
+            "eyeballs": {k: int(len(v)) for k, v in self.eyeballs.items()},
+        }
 
 
 def read_landmarks_file(path: Path, num_vertices: int) -> tuple[np.ndarray, dict[str, int]]:
@@ -66,13 +87,15 @@ def read_landmarks_file(path: Path, num_vertices: int) -> tuple[np.ndarray, dict
     except (OSError, ValueError) as e:
         raise UserError(f"landmarks file {path} is not JSON: {e}") from None
     if not isinstance(data, dict) or "vertex_ids" not in data:
-        raise UserError(f"landmarks file {path} needs \"vertex_ids\": {HOW_TO}")
+        raise UserError(f'landmarks file {path} needs "vertex_ids": {HOW_TO}')
     try:
         ids = np.asarray(data["vertex_ids"], dtype=np.int64)
     except (TypeError, ValueError):
         raise UserError(f"landmarks file {path}: vertex_ids must be 20 integers") from None
     if ids.shape != (20,):
-        raise UserError(f"landmarks file {path}: vertex_ids must be 20 integers (68-point order 36-47, 60-67), got {ids.size}")
+        raise UserError(
+            f"landmarks file {path}: vertex_ids must be 20 integers (68-point order 36-47, 60-67), got {ids.size}"
+        )
     named_src = {**{k: v for k, v in data.items() if k in NAMED_POINTS}, **(data.get("named") or {})}
     named = {}
     for k, v in named_src.items():
@@ -91,7 +114,7 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Least-squares sphere through points [P, 3] -> (centre [3], radius, rms residual / radius)."""
     p = np.asarray(points, np.float64)
     a = np.concatenate([2 * p, np.ones((len(p), 1))], axis=1)
-    sol, *_ = np.linalg.lstsq(a, (p ** 2).sum(1), rcond=None)
+    sol, *_ = np.linalg.lstsq(a, (p**2).sum(1), rcond=None)
     c = sol[:3]
     r = float(np.sqrt(max(sol[3] + c @ c, 1e-18)))
     res = float(np.sqrt(np.mean((np.linalg.norm(p - c, axis=1) - r) ** 2)) / r)
@@ -99,7 +122,7 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
 
 def find_eyeballs(mesh: Mesh) -> dict[str, np.ndarray]:
-    """"left"/"right" -> eyeball vertex ids: labelled eye parts, else a mirrored pair of sphere-shaped parts."""
+    """ "left"/"right" -> eyeball vertex ids: labelled eye parts, else a mirrored pair of sphere-shaped parts."""
     names = set(mesh.part_names)
     if {"eye_left", "eye_right"} <= names:
         return {s: np.nonzero(mesh.part_mask(f"eye_{s}"))[0] for s in ("left", "right")}
@@ -118,7 +141,7 @@ def find_eyeballs(mesh: Mesh) -> dict[str, np.ndarray]:
             spheres.append((idx, centre, r))
     best, score = None, np.inf
     for i, (ia, ca, ra) in enumerate(spheres):
-        for ib, cb, rb in spheres[i + 1:]:
+        for ib, cb, rb in spheres[i + 1 :]:
             if ca[0] * cb[0] >= 0:
                 continue  # a pair sits on both sides of the face
             s = (abs(ca[0] + cb[0]) + abs(ca[1] - cb[1]) + abs(ca[2] - cb[2])) / (ra + rb) + abs(ra - rb) / (ra + rb)
@@ -201,8 +224,13 @@ def eye_parts_at(mesh: Mesh, renderer, points2d: np.ndarray, size: int = 512) ->
         if counts[c] == counts.max() or counts[c] > 0.1 * mesh.num_vertices:
             return {}  # the eye is painted on the skin
         out[side] = np.nonzero(comp == c)[0]
-    return out if out.get("left") is not None and out.get("right") is not None and \
-        not np.array_equal(out["left"], out["right"]) else {}
+    return (
+        out
+        if out.get("left") is not None
+        and out.get("right") is not None
+        and not np.array_equal(out["left"], out["right"])
+        else {}
+    )
 
 
 def eyes_from_parts(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> np.ndarray | None:
@@ -228,8 +256,9 @@ def eyes_from_parts(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size:
     return np.concatenate(out).astype(np.int64)
 
 
-def find_face(mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use_mediapipe: bool = True,
-              source_name: str = "mesh") -> FaceLandmarks:
+def find_face(
+    mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use_mediapipe: bool = True, source_name: str = "mesh"
+) -> FaceLandmarks:
     """Landmarks of ``mesh`` (canonical frame: +Z forward, Y up) from the first source that works."""
     eyeballs = find_eyeballs(mesh)
     if landmarks_file is not None:
@@ -268,5 +297,7 @@ def find_face(mesh: Mesh, landmarks_file: Path | None = None, renderer=None, use
     finally:
         if own:
             renderer.release()
-    raise UserError(f"no face found on {source_name}: missing the 20 face landmarks (eyes 36-47, inner lips 60-67; "
-                    f"{'; '.join(reasons)}); {HOW_TO}")
+    raise UserError(
+        f"no face found on {source_name}: missing the 20 face landmarks (eyes 36-47, inner lips 60-67; "
+        f"{'; '.join(reasons)}); {HOW_TO}"
+    )

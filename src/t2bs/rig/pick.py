@@ -19,15 +19,26 @@ PICKED = "picked.json"  # DIR/landmarks/<this>: the user's points for the projec
 # The 20 points in the 68-point order (36-47, 60-67): (slot, what to click). Right / left are the
 # character's own (right eye on -X, image left in the frontal view).
 SLOTS: list[tuple[str, str]] = [
-    ("36", "right eye, outer corner"), ("37", "right eye, upper lid (outer third)"),
-    ("38", "right eye, upper lid (inner third)"), ("39", "right eye, inner corner"),
-    ("40", "right eye, lower lid (inner third)"), ("41", "right eye, lower lid (outer third)"),
-    ("42", "left eye, inner corner"), ("43", "left eye, upper lid (inner third)"),
-    ("44", "left eye, upper lid (outer third)"), ("45", "left eye, outer corner"),
-    ("46", "left eye, lower lid (outer third)"), ("47", "left eye, lower lid (inner third)"),
-    ("60", "mouth, right corner"), ("61", "upper inner lip, right"), ("62", "upper inner lip, middle"),
-    ("63", "upper inner lip, left"), ("64", "mouth, left corner"), ("65", "lower inner lip, left"),
-    ("66", "lower inner lip, middle"), ("67", "lower inner lip, right"),
+    ("36", "right eye, outer corner"),
+    ("37", "right eye, upper lid (outer third)"),
+    ("38", "right eye, upper lid (inner third)"),
+    ("39", "right eye, inner corner"),
+    ("40", "right eye, lower lid (inner third)"),
+    ("41", "right eye, lower lid (outer third)"),
+    ("42", "left eye, inner corner"),
+    ("43", "left eye, upper lid (inner third)"),
+    ("44", "left eye, upper lid (outer third)"),
+    ("45", "left eye, outer corner"),
+    ("46", "left eye, lower lid (outer third)"),
+    ("47", "left eye, lower lid (inner third)"),
+    ("60", "mouth, right corner"),
+    ("61", "upper inner lip, right"),
+    ("62", "upper inner lip, middle"),
+    ("63", "upper inner lip, left"),
+    ("64", "mouth, left corner"),
+    ("65", "lower inner lip, left"),
+    ("66", "lower inner lip, middle"),
+    ("67", "lower inner lip, right"),
 ] + [(n, f"optional: {n.replace('_', ' ')}") for n in NAMED_POINTS]
 
 
@@ -125,8 +136,11 @@ class LandmarkPicks:
     def to_dict(self) -> dict:
         if self.missing():
             raise UserError(f"landmarks not picked yet: {', '.join(self.missing())} (68-point numbers)")
-        return {"vertex_ids": [self.ids[s] for s, _ in SLOTS[:20]], "backend": "picked",
-                "named": {s: self.ids[s] for s, _ in SLOTS[20:] if s in self.ids}}
+        return {
+            "vertex_ids": [self.ids[s] for s, _ in SLOTS[:20]],
+            "backend": "picked",
+            "named": {s: self.ids[s] for s, _ in SLOTS[20:] if s in self.ids},
+        }
 
     def save(self, path: Path) -> Path:
         from t2bs.project import write_json

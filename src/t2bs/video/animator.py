@@ -6,7 +6,7 @@ of abstract *controls* (jaw_open, blink_left, smile_right, brow_up_left, look_up
 each a curve over normalised time u in [0, 1]. ``morph_drivers`` then maps the controls onto
 whatever morph targets the mesh has:
 
-- procedural characters (CONTRACTS.md rig): jaw_open, blink_left/right, smile, frown, brow_up,
+- procedural characters (their rig, character/procedural.py): jaw_open, blink_left/right, smile, frown, brow_up,
   ear_wave, tongue_out, cheek_puff, look_left/right/up/down;
 - ARKit blendshapes (facecap.glb): jawOpen, eyeBlink_L/R, mouthSmile_L/R, browInnerUp, ...; also
   Apple's spelling eyeBlinkLeft / mouthSmileRight (what ``t2bs autorig`` writes, issue 34);
@@ -39,7 +39,7 @@ from t2bs.video.prompts import EXPRESSIONS
 
 # Morph name (lower case) -> [(control, gain)]: how much each control drives that morph.
 MORPH_DRIVERS: dict[str, list[tuple[str, float]]] = {
-    # Procedural rig (CONTRACTS.md, issue 4). Symmetric morphs take half of each side.
+    # Procedural rig (character/procedural.py, issue 4). Symmetric morphs take half of each side.
     "jaw_open": [("jaw_open", 1.0)],
     "blink_left": [("blink_left", 1.0)],
     "blink_right": [("blink_right", 1.0)],
@@ -146,11 +146,19 @@ MORPH_DRIVERS: dict[str, list[tuple[str, float]]] = {
 
 # Morph pairs whose first member should move the character's left (+X) side.
 SIDE_PAIRS = [
-    ("blink_left", "blink_right"), ("eyeblink_l", "eyeblink_r"), ("eyeleftclose", "eyerightclose"),
-    ("blink_l", "blink_r"), ("blinkleft", "blinkright"), ("mouthsmile_l", "mouthsmile_r"),
-    ("smileleft", "smileright"), ("browouterup_l", "browouterup_r"), ("browdown_l", "browdown_r"),
-    ("eyebrowleftup", "eyebrowrightup"), ("eyebrowleftdown", "eyebrowrightdown"),
-    ("cheeksquint_l", "cheeksquint_r"), ("mouthdimple_l", "mouthdimple_r"),
+    ("blink_left", "blink_right"),
+    ("eyeblink_l", "eyeblink_r"),
+    ("eyeleftclose", "eyerightclose"),
+    ("blink_l", "blink_r"),
+    ("blinkleft", "blinkright"),
+    ("mouthsmile_l", "mouthsmile_r"),
+    ("smileleft", "smileright"),
+    ("browouterup_l", "browouterup_r"),
+    ("browdown_l", "browdown_r"),
+    ("eyebrowleftup", "eyebrowrightup"),
+    ("eyebrowleftdown", "eyebrowrightdown"),
+    ("cheeksquint_l", "cheeksquint_r"),
+    ("mouthdimple_l", "mouthdimple_r"),
 ]
 
 # Words of a user-written expression -> built-in expressions it is animated as (offline only).
@@ -283,7 +291,11 @@ class _Curves:
         both = bumps(self.u, centres, w)
         self.add("blink_left", both, amount)
         # Eyes close together; an occasional tiny lag of one eye reads as natural.
-        self.add("blink_right", both if not lag or self.rng.random() < 0.7 else bumps(self.u, [c + 0.3 * w for c in centres], w), amount)
+        self.add(
+            "blink_right",
+            both if not lag or self.rng.random() < 0.7 else bumps(self.u, [c + 0.3 * w for c in centres], w),
+            amount,
+        )
 
     def head_noise(self, yaw: float = 2.5, pitch: float = 2.0, roll: float = 1.0) -> None:
         for k, a in enumerate((yaw, pitch, roll)):
@@ -552,8 +564,10 @@ def resolve_expression(expression: str) -> list[str]:
     hits = [target for words, target in KEYWORDS if any(w in key for w in words)]
     hits = list(dict.fromkeys(hits))
     if not hits:
-        raise UserError(f"the offline animator cannot animate {expression!r}; valid: {', '.join(EXPRESSIONS)} "
-                        "(or words such as blink, smile, talk, tongue, look, angry)")
+        raise UserError(
+            f"the offline animator cannot animate {expression!r}; valid: {', '.join(EXPRESSIONS)} "
+            "(or words such as blink, smile, talk, tongue, look, angry)"
+        )
     return hits
 
 
@@ -601,7 +615,9 @@ def _side_x(mesh: Mesh, name: str) -> float:
 def head_pivot(vertices: np.ndarray) -> np.ndarray:
     """[3] the neck: bottom-centre of the bounding box, a little behind the middle."""
     lo, hi = vertices.min(0), vertices.max(0)
-    return np.array([(lo[0] + hi[0]) / 2, lo[1] + 0.1 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2 - 0.1 * (hi[2] - lo[2])], np.float32)
+    return np.array(
+        [(lo[0] + hi[0]) / 2, lo[1] + 0.1 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2 - 0.1 * (hi[2] - lo[2])], np.float32
+    )
 
 
 def head_rotations(angles_deg: np.ndarray) -> np.ndarray:
@@ -615,9 +631,24 @@ def head_rotations(angles_deg: np.ndarray) -> np.ndarray:
     cp, sp = np.cos(a[:, 1]), np.sin(a[:, 1])
     cr, sr = np.cos(a[:, 2]), np.sin(a[:, 2])
     T = len(a)
-    ry = np.zeros((T, 3, 3)); ry[:, 0, 0] = cy; ry[:, 0, 2] = sy; ry[:, 1, 1] = 1; ry[:, 2, 0] = -sy; ry[:, 2, 2] = cy  # noqa: E702
-    rx = np.zeros((T, 3, 3)); rx[:, 0, 0] = 1; rx[:, 1, 1] = cp; rx[:, 1, 2] = -sp; rx[:, 2, 1] = sp; rx[:, 2, 2] = cp  # noqa: E702
-    rz = np.zeros((T, 3, 3)); rz[:, 0, 0] = cr; rz[:, 0, 1] = -sr; rz[:, 1, 0] = sr; rz[:, 1, 1] = cr; rz[:, 2, 2] = 1  # noqa: E702
+    ry = np.zeros((T, 3, 3))
+    ry[:, 0, 0] = cy
+    ry[:, 0, 2] = sy
+    ry[:, 1, 1] = 1
+    ry[:, 2, 0] = -sy
+    ry[:, 2, 2] = cy  # noqa: E702
+    rx = np.zeros((T, 3, 3))
+    rx[:, 0, 0] = 1
+    rx[:, 1, 1] = cp
+    rx[:, 1, 2] = -sp
+    rx[:, 2, 1] = sp
+    rx[:, 2, 2] = cp  # noqa: E702
+    rz = np.zeros((T, 3, 3))
+    rz[:, 0, 0] = cr
+    rz[:, 0, 1] = -sr
+    rz[:, 1, 0] = sr
+    rz[:, 1, 1] = cr
+    rz[:, 2, 2] = 1  # noqa: E702
     return ry @ rx @ rz
 
 
@@ -645,7 +676,9 @@ def expression_curves(expression: str, frames: int, seed: int) -> tuple[dict[str
     return c.c, c.head, parts
 
 
-def animate(mesh: Mesh, expression: str, seed: int = 0, sample: int = 0, config: AnimationConfig = AnimationConfig()) -> Animation:
+def animate(
+    mesh: Mesh, expression: str, seed: int = 0, sample: int = 0, config: AnimationConfig = AnimationConfig()
+) -> Animation:
     """Animate ``mesh`` (canonical frame) with ``expression``: weights, head motion and GT vertices."""
     rng_seed = expression_seed(seed, expression, sample)
     controls, head, parts = expression_curves(expression, config.frames, rng_seed)
@@ -667,7 +700,9 @@ def animate(mesh: Mesh, expression: str, seed: int = 0, sample: int = 0, config:
         morphed = _pose(mesh, names, weights)
         if np.linalg.norm(morphed - mesh.vertices[None], axis=-1).max() < 0.01 * diag:
             # Last resort: drive the strongest morph target of the asset with a smooth bump.
-            strongest = max(mesh.morph_targets, key=lambda n: float(np.linalg.norm(mesh.morph_targets[n], axis=1).max()))
+            strongest = max(
+                mesh.morph_targets, key=lambda n: float(np.linalg.norm(mesh.morph_targets[n], axis=1).max())
+            )
             extra = bumps(fb.u, [0.55], 0.3)
             if strongest in names:
                 weights[:, names.index(strongest)] = np.maximum(weights[:, names.index(strongest)], extra)
@@ -685,11 +720,23 @@ def animate(mesh: Mesh, expression: str, seed: int = 0, sample: int = 0, config:
     pivot = head_pivot(mesh.vertices)
     vertices = apply_head_motion(morphed, angles, pivot)
     times = (np.arange(config.frames) / config.fps).astype(np.float32)
-    return Animation(expression, times, {k: np.asarray(v, np.float32) for k, v in controls.items()}, names,
-                     weights, angles, pivot, morphed, vertices, info)
+    return Animation(
+        expression,
+        times,
+        {k: np.asarray(v, np.float32) for k, v in controls.items()},
+        names,
+        weights,
+        angles,
+        pivot,
+        morphed,
+        vertices,
+        info,
+    )
 
 
-def _weights(drivers: dict[str, list[tuple[str, float]]], controls: dict[str, np.ndarray], config: AnimationConfig) -> tuple[list[str], np.ndarray]:
+def _weights(
+    drivers: dict[str, list[tuple[str, float]]], controls: dict[str, np.ndarray], config: AnimationConfig
+) -> tuple[list[str], np.ndarray]:
     names, cols = [], []
     for name, drv in drivers.items():
         w = sum(g * controls[c] for c, g in drv if c in controls)

@@ -42,8 +42,10 @@ class CogVideoXConfig:
 def check_checkpoint(path: str | os.PathLike) -> Path:
     """The checkpoint folder, or MissingCheckpointError saying what to download and where."""
     path = Path(path)
-    how = (f"download {HF_REPO} on a machine with internet access "
-           f"(`huggingface-cli download {HF_REPO} --local-dir {path}`) and pass --checkpoint {path}")
+    how = (
+        f"download {HF_REPO} on a machine with internet access "
+        f"(`huggingface-cli download {HF_REPO} --local-dir {path}`) and pass --checkpoint {path}"
+    )
     if not path.is_dir():
         raise MissingCheckpointError(f"CogVideoX image-to-video checkpoint ({HF_REPO})", str(path), how)
     missing = [m for m in REQUIRED if not (path / m).exists()]
@@ -59,8 +61,10 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str | None = None, dtyp
         import torch
         from diffusers import CogVideoXImageToVideoPipeline
     except ImportError as exc:
-        raise UserError(f"the CogVideoX backend needs diffusers and transformers ({exc}); "
-                        "install them with `pip install -e .[diffusers]`") from None
+        raise UserError(
+            f"the CogVideoX backend needs diffusers and transformers ({exc}); "
+            "install them with `pip install -e .[diffusers]`"
+        ) from None
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if dtype is None:
         dtype = torch.bfloat16 if device.startswith("cuda") else torch.float32
@@ -87,12 +91,13 @@ def letterbox(image: np.ndarray, height: int, width: int) -> tuple[np.ndarray, t
     img = np.asarray(Image.fromarray(image).resize((side, side), Image.BICUBIC))
     out = np.full((height, width, 3), 255, np.uint8)
     y0, x0 = (height - side) // 2, (width - side) // 2
-    out[y0:y0 + side, x0:x0 + side] = img
+    out[y0 : y0 + side, x0 : x0 + side] = img
     return out, (x0, y0, side)
 
 
-def generate_fixed_view(pipe, image: np.ndarray, prompt: str, config: CogVideoXConfig = CogVideoXConfig(),
-                        seed: int = 0) -> np.ndarray:
+def generate_fixed_view(
+    pipe, image: np.ndarray, prompt: str, config: CogVideoXConfig = CogVideoXConfig(), seed: int = 0
+) -> np.ndarray:
     """Frontal render [S, S, 3] uint8 + prompt -> fixed-view video [T, S, S, 3] uint8."""
     import torch
     from PIL import Image
@@ -117,7 +122,7 @@ def generate_fixed_view(pipe, image: np.ndarray, prompt: str, config: CogVideoXC
         output_type="np",
     ).frames[0]  # [T, H, W, 3] float in [0, 1]
     video = (np.clip(np.asarray(out, np.float32), 0, 1) * 255 + 0.5).astype(np.uint8)
-    crop = video[:, y0:y0 + side, x0:x0 + side]
+    crop = video[:, y0 : y0 + side, x0 : x0 + side]
     if side != size:
         crop = np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BICUBIC)) for f in crop])
     return crop
@@ -129,4 +134,6 @@ def fixed_view_grid(video: np.ndarray, camera: Camera, fps: float, meta: dict | 
     if (camera.width, camera.height) != (video.shape[2], video.shape[1]):
         camera = camera.resized(video.shape[2], video.shape[1])
     times = (np.arange(video.shape[0]) / fps).astype(np.float32)
-    return VideoGrid(video[None], [camera], times, 0, None, None, "cogvideox", {"fps": fps, **(meta or {})}).validate("cogvideox video")
+    return VideoGrid(video[None], [camera], times, 0, None, None, "cogvideox", {"fps": fps, **(meta or {})}).validate(
+        "cogvideox video"
+    )

@@ -160,15 +160,22 @@ class ViewAppearance:
     blur_sigma: float  # pixels
 
 
-def view_appearance(view: int, azimuth_deg: float, frames: int, size: int, camera_position: np.ndarray,
-                    cfg: DefectConfig) -> ViewAppearance:
+def view_appearance(
+    view: int, azimuth_deg: float, frames: int, size: int, camera_position: np.ndarray, cfg: DefectConfig
+) -> ViewAppearance:
     """The image-space defect parameters of one view over time (deterministic per seed and view)."""
     rng = _rng(cfg, "appearance", view)
     # A view-level offset plus a slow drift over time; brightness dominates, hue shifts are small.
     luma = cfg.color_gain * (rng.normal(0, 1) + 0.5 * _smooth_series(rng, frames))[:, None]  # [T, 1]
-    tint = cfg.color_tint * (rng.normal(0, 1, (1, 3)) + 0.5 * np.stack([_smooth_series(rng, frames) for _ in range(3)], 1))
+    tint = cfg.color_tint * (
+        rng.normal(0, 1, (1, 3)) + 0.5 * np.stack([_smooth_series(rng, frames) for _ in range(3)], 1)
+    )
     gain = 1.0 + cfg.color * (luma + tint)  # [T, 3]
-    bias = cfg.color * cfg.color_bias * (rng.normal(0, 1, (1, 3)) + 0.5 * np.stack([_smooth_series(rng, frames) for _ in range(3)], 1))
+    bias = (
+        cfg.color
+        * cfg.color_bias
+        * (rng.normal(0, 1, (1, 3)) + 0.5 * np.stack([_smooth_series(rng, frames) for _ in range(3)], 1))
+    )
     # A light roughly from the camera side, wandering over time: shading differs per view and frame.
     to_cam = np.asarray(camera_position, float) / max(np.linalg.norm(camera_position), 1e-9)
     base = to_cam + rng.normal(0, 0.6, 3)
@@ -177,8 +184,14 @@ def view_appearance(view: int, azimuth_deg: float, frames: int, size: int, camer
     light /= np.linalg.norm(light, axis=1, keepdims=True)
     flicker = 1.0 + cfg.flicker * cfg.flicker_std * rng.normal(0, 1, frames)
     sigma = cfg.blur * cfg.blur_sigma * size * _az_factor(azimuth_deg)
-    return ViewAppearance(gain.astype(np.float32), bias.astype(np.float32), light.astype(np.float32),
-                          float(np.clip(cfg.lighting * cfg.light_mix, 0, 0.9)), flicker.astype(np.float32), float(sigma))
+    return ViewAppearance(
+        gain.astype(np.float32),
+        bias.astype(np.float32),
+        light.astype(np.float32),
+        float(np.clip(cfg.lighting * cfg.light_mix, 0, 0.9)),
+        flicker.astype(np.float32),
+        float(sigma),
+    )
 
 
 def apply_appearance(rgb: np.ndarray, normal: np.ndarray, mask: np.ndarray, app: ViewAppearance, t: int) -> np.ndarray:

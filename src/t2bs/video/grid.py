@@ -103,7 +103,9 @@ class VideoGrid:
         if not (0 <= int(self.canonical_view) < v):
             raise UserError(f"{source}: canonical_view {self.canonical_view} is outside 0..{v - 1}")
         if self.masks is not None and (self.masks.shape != (v, t, h, w) or self.masks.dtype != bool):
-            raise UserError(f"{source}: masks must be bool [{v}, {t}, {h}, {w}], got {self.masks.dtype} {self.masks.shape}")
+            raise UserError(
+                f"{source}: masks must be bool [{v}, {t}, {h}, {w}], got {self.masks.dtype} {self.masks.shape}"
+            )
         if self.gt_vertices is not None:
             g = self.gt_vertices
             if g.ndim != 3 or g.shape[0] != t or g.shape[2] != 3:
@@ -143,8 +145,15 @@ def save_grid(grid: VideoGrid, folder: str | os.PathLike, frame_format: str = "p
         rate = fps or float(grid.meta.get("fps", 8.0))
         for v in range(grid.num_views):
             with atomic_path(frames_dir / f"view{v:02d}.mp4") as tmp:
-                with iio.get_writer(tmp, format="FFMPEG", fps=rate, codec="libx264", quality=9,
-                                    macro_block_size=1, ffmpeg_log_level="error") as writer:
+                with iio.get_writer(
+                    tmp,
+                    format="FFMPEG",
+                    fps=rate,
+                    codec="libx264",
+                    quality=9,
+                    macro_block_size=1,
+                    ffmpeg_log_level="error",
+                ) as writer:
                     for t in range(grid.num_frames):
                         writer.append_data(grid.frames[v, t])
     write_json(folder / "cameras.json", [c.to_dict() for c in grid.cameras])
@@ -158,13 +167,22 @@ def save_grid(grid: VideoGrid, folder: str | os.PathLike, frame_format: str = "p
                 np.save(fh, np.asarray(grid.gt_vertices, dtype=np.float32))
     else:
         (folder / "gt_vertices.npy").unlink(missing_ok=True)
-    write_json(folder / "grid.json", {
-        "format": GRID_FORMAT, "version": GRID_VERSION,
-        "views": grid.num_views, "frames": grid.num_frames, "height": grid.height, "width": grid.width,
-        "times": np.asarray(grid.times, dtype=np.float64).tolist(),
-        "canonical_view": int(grid.canonical_view), "backend": grid.backend,
-        "frame_format": frame_format, "meta": grid.meta,
-    })
+    write_json(
+        folder / "grid.json",
+        {
+            "format": GRID_FORMAT,
+            "version": GRID_VERSION,
+            "views": grid.num_views,
+            "frames": grid.num_frames,
+            "height": grid.height,
+            "width": grid.width,
+            "times": np.asarray(grid.times, dtype=np.float64).tolist(),
+            "canonical_view": int(grid.canonical_view),
+            "backend": grid.backend,
+            "frame_format": frame_format,
+            "meta": grid.meta,
+        },
+    )
     return folder
 
 
@@ -225,7 +243,9 @@ def load_grid(folder: str | os.PathLike, load_frames: bool = True) -> VideoGrid:
         from t2bs.project import read_array
 
         gt = read_array(folder / "gt_vertices.npy", "ground-truth vertices", ndim=3, trailing=(3,)).astype(np.float32)
-    grid = VideoGrid(frames, cameras, times, canonical, masks, gt, str(info.get("backend", "unknown")), dict(info.get("meta") or {}))
+    grid = VideoGrid(
+        frames, cameras, times, canonical, masks, gt, str(info.get("backend", "unknown")), dict(info.get("meta") or {})
+    )
     return grid.validate(src)
 
 
@@ -242,7 +262,9 @@ def _check_frame_files(frames_dir: Path, fmt: str, nv: int, nt: int, src: str) -
         if n != nt:
             raise UserError(f"{src}: frames/view{v:02d}/ has {n} frames but grid.json says {nt}")
     if fmt == "png":
-        extra = sorted(p.name for p in frames_dir.glob("view*") if p.is_dir() and p.name[4:].isdigit() and int(p.name[4:]) >= nv)
+        extra = sorted(
+            p.name for p in frames_dir.glob("view*") if p.is_dir() and p.name[4:].isdigit() and int(p.name[4:]) >= nv
+        )
         if extra:
             raise UserError(f"{src}: frames/{extra[0]}/ is an extra view ({nv} views expected)")
     elif fmt != "mp4":
@@ -262,7 +284,9 @@ def _read_frames(frames_dir: Path, fmt: str, nv: int, nt: int, h: int, w: int, s
             imgs = [read_rgb(frames_dir / f"view{v:02d}" / f"{t:04d}.png", src) for t in range(nt)]
         for t, img in enumerate(imgs):
             if img.shape != (h, w, 3):
-                raise UserError(f"{src}: view {v} frame {t} is {img.shape[1]}x{img.shape[0]} but grid.json says {w}x{h}")
+                raise UserError(
+                    f"{src}: view {v} frame {t} is {img.shape[1]}x{img.shape[0]} but grid.json says {w}x{h}"
+                )
             out[v, t] = img
     return out
 
@@ -331,10 +355,17 @@ def masks_from_frames(frames: np.ndarray, tolerance: int = 12) -> np.ndarray:
 # Importer for grids written by SV4D-style 4D video models.
 
 
-def import_image_grid(source: str | os.PathLike, views: int | None = None, frames: int | None = None,
-                      cameras: list[Camera] | str | os.PathLike | None = None, canonical_view: int | None = None,
-                      fps: float = 8.0, backend: str = "sv4d-import", meta: dict | None = None,
-                      shading: str | None = None) -> VideoGrid:
+def import_image_grid(
+    source: str | os.PathLike,
+    views: int | None = None,
+    frames: int | None = None,
+    cameras: list[Camera] | str | os.PathLike | None = None,
+    canonical_view: int | None = None,
+    fps: float = 8.0,
+    backend: str = "sv4d-import",
+    meta: dict | None = None,
+    shading: str | None = None,
+) -> VideoGrid:
     """A V x T image grid written by a 4D video model -> VideoGrid.
 
     ``source`` is one of
@@ -365,7 +396,9 @@ def import_image_grid(source: str | os.PathLike, views: int | None = None, frame
         big = read_rgb(source, alphas=alphas)
         gh, gw = big.shape[:2]
         if gh % views or gw % frames:
-            raise UserError(f"{source}: a {gw}x{gh} image does not split into {views} rows x {frames} columns of equal tiles")
+            raise UserError(
+                f"{source}: a {gw}x{gh} image does not split into {views} rows x {frames} columns of equal tiles"
+            )
         th, tw = gh // views, gw // frames
         data = big.reshape(views, th, frames, tw, 3).transpose(0, 2, 1, 3, 4)  # [V, T, th, tw, 3]
         if alphas[0] is not None:

@@ -49,7 +49,7 @@ class VideoJob:
 
     @property
     def video_id(self) -> str:
-        """Folder name under DIR/videos/ (CONTRACTS.md): "<expression-slug>-s<sample>"."""
+        """Folder name under DIR/videos/ (docs/ARCHITECTURE.md): "<expression-slug>-s<sample>"."""
         return f"{slug(self.expression)}-s{self.sample}"
 
 
@@ -70,8 +70,9 @@ def video_prompt(character: str, expression: str) -> str:
 MAX_PROMPT_CHARS = 300  # longer than any video model's text window (CogVideoX: 226 tokens)
 
 
-def resolve_expressions(spec: str | list[str] | None, known: tuple[str, ...] | list[str] = EXPRESSIONS,
-                        allow_custom: bool = False) -> list[str]:
+def resolve_expressions(
+    spec: str | list[str] | None, known: tuple[str, ...] | list[str] = EXPRESSIONS, allow_custom: bool = False
+) -> list[str]:
     """'all' / None -> every known expression; a comma list or list of names/slugs -> those, in order.
 
     Names match case-insensitively, by full text or by slug ("opening-the-mouth-extremely-wide").
@@ -86,8 +87,10 @@ def resolve_expressions(spec: str | list[str] | None, known: tuple[str, ...] | l
         raise UserError("no expression prompts given")
     longest = max(items, key=len)
     if len(longest) > MAX_PROMPT_CHARS:  # it names a folder (video id) and goes into a text encoder
-        raise UserError(f"an expression prompt has {len(longest)} characters; at most {MAX_PROMPT_CHARS} "
-                        f"(starts {longest[:40]!r})")
+        raise UserError(
+            f"an expression prompt has {len(longest)} characters; at most {MAX_PROMPT_CHARS} "
+            f"(starts {longest[:40]!r})"
+        )
     by_key = {}
     for e in known:
         by_key[e.lower()] = e
@@ -123,7 +126,7 @@ def load_prompt_list(path: str | os.PathLike) -> list[str]:
         if isinstance(data, dict):
             data = data.get("expressions")
         if not isinstance(data, list) or not all(isinstance(x, str) for x in data):
-            raise UserError(f"{path}: expected a JSON list of expression strings (or {{\"expressions\": [...]}})")
+            raise UserError(f'{path}: expected a JSON list of expression strings (or {{"expressions": [...]}})')
         items = [x.strip() for x in data if x.strip()]
     else:
         items = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
@@ -136,9 +139,15 @@ def load_prompt_list(path: str | os.PathLike) -> list[str]:
 def write_default_prompt_list(path: str | os.PathLike) -> Path:
     """Write the paper's 20 expressions as an editable text file."""
     path = Path(path)
-    lines = ["# Expression prompts, one per line (paper appendix). Edit freely; '#' starts a comment.",
-             "# Physically specific expressions"] + list(PHYSICAL_EXPRESSIONS) + \
-            ["# Emotionally expressive states"] + list(EMOTIONAL_EXPRESSIONS)
+    lines = (
+        [
+            "# Expression prompts, one per line (paper appendix). Edit freely; '#' starts a comment.",
+            "# Physically specific expressions",
+        ]
+        + list(PHYSICAL_EXPRESSIONS)
+        + ["# Emotionally expressive states"]
+        + list(EMOTIONAL_EXPRESSIONS)
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
     return path

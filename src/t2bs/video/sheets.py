@@ -27,11 +27,11 @@ def contact_sheet(grid: VideoGrid, max_columns: int = 16, tile: int = 128, gap: 
             if img.shape[:2] != (th, tw):
                 img = np.asarray(Image.fromarray(img).resize((tw, th), Image.BILINEAR))
             y, x = gap + v * (th + gap), gap + j * (tw + gap)
-            sheet[y:y + th, x:x + tw] = img
+            sheet[y : y + th, x : x + tw] = img
     # Red frame around the canonical row (the fixed-view video, never defective).
     c = grid.canonical_view
     y0, y1 = c * (th + gap), (c + 1) * (th + gap) + gap
-    sheet[y0:y0 + gap, :] = sheet[y1 - gap:y1, :] = (220, 30, 30)
+    sheet[y0 : y0 + gap, :] = sheet[y1 - gap : y1, :] = (220, 30, 30)
     sheet[y0:y1, :gap] = sheet[y0:y1, -gap:] = (220, 30, 30)
     return sheet
 

@@ -41,9 +41,11 @@ from t2bs.errors import MissingCheckpointError, UserError
 HF_REPO = "stabilityai/sv4d2.0"
 CHECKPOINT_FILE = "sv4d2.safetensors"
 CONFIG_FILE = "sv4d2_config.json"  # optional: a non-published model shape (the tests' tiny model)
-LICENCE = ("Stability AI Community License (accept it on the model page of stabilityai/sv4d2.0 before "
-           "downloading; free for research and for organisations under USD 1M annual revenue, others need "
-           "an enterprise licence from Stability AI)")
+LICENCE = (
+    "Stability AI Community License (accept it on the model page of stabilityai/sv4d2.0 before "
+    "downloading; free for research and for organisations under USD 1M annual revenue, others need "
+    "an enterprise licence from Stability AI)"
+)
 
 # Prefixes of the published single-file checkpoint (the authors' DiffusionEngine state dict).
 UNET_PREFIX = "model.diffusion_model."
@@ -95,8 +97,10 @@ class SV4D2Config:
         if self.adm_channels != 4 * self.model_channels:
             # The camera attention embeds the UNet's time embedding (width 4 * model_channels) with
             # a layer sized for the vector conditioning: the published model relies on both being 1280.
-            raise UserError(f"SV4D 2.0 config: sigma_embed_dim + 2 * camera_embed_dim ({self.adm_channels}) must equal "
-                            f"4 * model_channels ({4 * self.model_channels})")
+            raise UserError(
+                f"SV4D 2.0 config: sigma_embed_dim + 2 * camera_embed_dim ({self.adm_channels}) must equal "
+                f"4 * model_channels ({4 * self.model_channels})"
+            )
         return self
 
     @classmethod
@@ -111,10 +115,26 @@ class SV4D2Config:
 
 def tiny_config(**overrides) -> SV4D2Config:
     """A few-kilobyte model of the same architecture, for tests and the equivalence check."""
-    base = dict(frames=3, views=2, model_channels=32, channel_mult=(1, 2), num_res_blocks=1,
-                attention_resolutions=(1, 2), num_head_channels=16, context_dim=32, sigma_embed_dim=32,
-                camera_embed_dim=48, clip_width=32, clip_layers=2, clip_heads=2, clip_patch=32,
-                clip_image_size=224, vae_channels=(32, 32), vae_layers_per_block=1, image_size=16)
+    base = dict(
+        frames=3,
+        views=2,
+        model_channels=32,
+        channel_mult=(1, 2),
+        num_res_blocks=1,
+        attention_resolutions=(1, 2),
+        num_head_channels=16,
+        context_dim=32,
+        sigma_embed_dim=32,
+        camera_embed_dim=48,
+        clip_width=32,
+        clip_layers=2,
+        clip_heads=2,
+        clip_patch=32,
+        clip_image_size=224,
+        vae_channels=(32, 32),
+        vae_layers_per_block=1,
+        image_size=16,
+    )
     base.update(overrides)
     return SV4D2Config(**base).check()
 
@@ -141,8 +161,10 @@ def _torch():
         from diffusers.models.attention import BasicTransformerBlock  # noqa: F401
         from transformers import CLIPVisionConfig  # noqa: F401
     except ImportError as exc:
-        raise UserError(f"the SV4D 2.0 backend needs diffusers and transformers ({exc}); "
-                        "install them with `pip install -e .[diffusers]`") from None
+        raise UserError(
+            f"the SV4D 2.0 backend needs diffusers and transformers ({exc}); "
+            "install them with `pip install -e .[diffusers]`"
+        ) from None
     import torch
 
     return torch
@@ -185,14 +207,27 @@ def _model_class():
             self.norm = nn.GroupNorm(32, ch, eps=1e-6)
             self.proj_in = nn.Linear(ch, inner)
             self.transformer_blocks = nn.ModuleList(
-                [BasicTransformerBlock(inner, heads, dim_head, cross_attention_dim=cfg.context_dim, activation_fn="geglu")
-                 for _ in range(depth)])
+                [
+                    BasicTransformerBlock(
+                        inner, heads, dim_head, cross_attention_dim=cfg.context_dim, activation_fn="geglu"
+                    )
+                    for _ in range(depth)
+                ]
+            )
             self.time_mix_blocks = nn.ModuleList(  # camera attention
-                [TemporalBasicTransformerBlock(inner, inner, heads, dim_head, cross_attention_dim=cfg.context_dim)
-                 for _ in range(depth)])
+                [
+                    TemporalBasicTransformerBlock(inner, inner, heads, dim_head, cross_attention_dim=cfg.context_dim)
+                    for _ in range(depth)
+                ]
+            )
             self.motion_blocks = nn.ModuleList(
-                [TemporalBasicTransformerBlock(inner, inner, heads, dim_head, cross_attention_dim=cfg.motion_context_dim)
-                 for _ in range(depth)])
+                [
+                    TemporalBasicTransformerBlock(
+                        inner, inner, heads, dim_head, cross_attention_dim=cfg.motion_context_dim
+                    )
+                    for _ in range(depth)
+                ]
+            )
             self.time_mix_time_embed = TimestepEmbedding(temb, 4 * ch, out_dim=ch)  # camera (view) embedding
             self.time_mix_motion_embed = TimestepEmbedding(ch, 4 * ch, out_dim=ch)  # frame-index embedding
             self.frame_proj = Timesteps(ch, flip_sin_to_cos=True, downscale_freq_shift=0)
@@ -259,7 +294,9 @@ def _model_class():
                     self.input_blocks.append(nn.ModuleList(layers))
                     chans.append(ch)
                 if level != len(cfg.channel_mult) - 1:
-                    self.input_blocks.append(nn.ModuleList([Downsample2D(ch, use_conv=True, out_channels=ch, padding=1, name="op")]))
+                    self.input_blocks.append(
+                        nn.ModuleList([Downsample2D(ch, use_conv=True, out_channels=ch, padding=1, name="op")])
+                    )
                     chans.append(ch)
                     ds *= 2
             self.middle_block = nn.ModuleList([res(ch, ch), attn(ch), res(ch, ch)])
@@ -274,7 +311,9 @@ def _model_class():
                         layers.append(Upsample2D(ch, use_conv=True, out_channels=ch))
                         ds //= 2
                     self.output_blocks.append(nn.ModuleList(layers))
-            self.out = nn.Sequential(nn.GroupNorm(32, ch, eps=1e-5), nn.SiLU(), nn.Conv2d(mc, cfg.out_channels, 3, padding=1))
+            self.out = nn.Sequential(
+                nn.GroupNorm(32, ch, eps=1e-5), nn.SiLU(), nn.Conv2d(mc, cfg.out_channels, 3, padding=1)
+            )
 
         @staticmethod
         def _run(layers, h, emb, context, cond_view, indicator):
@@ -312,17 +351,31 @@ def _model_class():
 
             self.cfg = cfg
             self.unet = SV4D2UNet(cfg)
-            self.image_encoder = CLIPVisionModelWithProjection(CLIPVisionConfig(
-                hidden_size=cfg.clip_width, intermediate_size=4 * cfg.clip_width, num_hidden_layers=cfg.clip_layers,
-                num_attention_heads=cfg.clip_heads, patch_size=cfg.clip_patch, image_size=cfg.clip_image_size,
-                projection_dim=cfg.context_dim, hidden_act="gelu", layer_norm_eps=1e-5))
+            self.image_encoder = CLIPVisionModelWithProjection(
+                CLIPVisionConfig(
+                    hidden_size=cfg.clip_width,
+                    intermediate_size=4 * cfg.clip_width,
+                    num_hidden_layers=cfg.clip_layers,
+                    num_attention_heads=cfg.clip_heads,
+                    patch_size=cfg.clip_patch,
+                    image_size=cfg.clip_image_size,
+                    projection_dim=cfg.context_dim,
+                    hidden_act="gelu",
+                    layer_norm_eps=1e-5,
+                )
+            )
 
             def vae():
                 n = len(cfg.vae_channels)
-                return AutoencoderKL(down_block_types=("DownEncoderBlock2D",) * n, up_block_types=("UpDecoderBlock2D",) * n,
-                                     block_out_channels=tuple(cfg.vae_channels), layers_per_block=cfg.vae_layers_per_block,
-                                     latent_channels=cfg.latent_channels, use_post_quant_conv=False,
-                                     scaling_factor=cfg.scale_factor)
+                return AutoencoderKL(
+                    down_block_types=("DownEncoderBlock2D",) * n,
+                    up_block_types=("UpDecoderBlock2D",) * n,
+                    block_out_channels=tuple(cfg.vae_channels),
+                    layers_per_block=cfg.vae_layers_per_block,
+                    latent_channels=cfg.latent_channels,
+                    use_post_quant_conv=False,
+                    scaling_factor=cfg.scale_factor,
+                )
 
             self.vae = vae()  # encoder: the input video; decoder: the outputs
             self.view_vae = None  # a second encoder only if the checkpoint's view encoder differs
@@ -374,13 +427,15 @@ def _model_class():
             with self._on(vae.encoder, vae.quant_conv) as dev:
                 x = images.to(dev, vae.dtype)
                 moments = vae.quant_conv(vae.encoder(x))
-                return moments[:, :self.cfg.latent_channels].float()
+                return moments[:, : self.cfg.latent_channels].float()
 
         def decode_latents(self, latents, chunk: int = 4):
             """[N, 4, h, w] sampled latents -> [N, 3, H, W] images in [0, 1]."""
             with self._on(self.vae.decoder) as dev:
-                out = [self.vae.decoder(z.to(dev, self.vae.dtype) / self.cfg.scale_factor).float()
-                       for z in latents.split(chunk)]
+                out = [
+                    self.vae.decoder(z.to(dev, self.vae.dtype) / self.cfg.scale_factor).float()
+                    for z in latents.split(chunk)
+                ]
             return ((torch.cat(out) + 1.0) / 2.0).clamp(0, 1)
 
         # -- conditioning ----------------------------------------------------------------------
@@ -414,10 +469,19 @@ def _model_class():
             # that size to the images before encoding, which we leave out: it changes latents by ~1e-5).
             sigma_emb = _sinusoid(torch.full((t * v,), 1e-5, device=dev), cfg.sigma_embed_dim)
             cam = [_sinusoid(polar, cfg.camera_embed_dim), _sinusoid(azimuth, cfg.camera_embed_dim)]
-            cond = {"crossattn": crossattn, "concat": concat, "vector": torch.cat([sigma_emb, *cam], 1), "cond_view": cond_view}
+            cond = {
+                "crossattn": crossattn,
+                "concat": concat,
+                "vector": torch.cat([sigma_emb, *cam], 1),
+                "cond_view": cond_view,
+            }
             # Unconditional branch: every image-derived input zeroed, cameras kept.
-            uncond = {"crossattn": torch.zeros_like(crossattn), "concat": torch.zeros_like(concat),
-                      "vector": torch.cat([torch.zeros_like(sigma_emb), *cam], 1), "cond_view": torch.zeros_like(cond_view)}
+            uncond = {
+                "crossattn": torch.zeros_like(crossattn),
+                "concat": torch.zeros_like(concat),
+                "vector": torch.cat([torch.zeros_like(sigma_emb), *cam], 1),
+                "cond_view": torch.zeros_like(cond_view),
+            }
             return cond, uncond
 
         # -- denoiser and sampler --------------------------------------------------------------
@@ -428,7 +492,7 @@ def _model_class():
 
         def _denoise(self, x, sigma, cond):
             s = sigma.float().view(-1, 1, 1, 1)
-            c_skip, c_out, c_in = 1.0 / (s ** 2 + 1.0), -s / (s ** 2 + 1.0) ** 0.5, 1.0 / (s ** 2 + 1.0) ** 0.5
+            c_skip, c_out, c_in = 1.0 / (s**2 + 1.0), -s / (s**2 + 1.0) ** 0.5, 1.0 / (s**2 + 1.0) ** 0.5
             c_noise = 0.25 * sigma.float().log()
             dt = next(self.unet.parameters()).dtype
             inp = torch.cat([x * c_in, cond["concat"]], 1).to(dt)
@@ -469,16 +533,26 @@ def _sinusoid(x, dim: int):
 # Checkpoint: the published single file <-> our modules
 
 
-_RES_SPATIAL = {"in_layers.0": "norm1", "in_layers.2": "conv1", "emb_layers.1": "time_emb_proj",
-                "out_layers.0": "norm2", "out_layers.3": "conv2", "skip_connection": "conv_shortcut"}
+_RES_SPATIAL = {
+    "in_layers.0": "norm1",
+    "in_layers.2": "conv1",
+    "emb_layers.1": "time_emb_proj",
+    "out_layers.0": "norm2",
+    "out_layers.3": "conv2",
+    "skip_connection": "conv_shortcut",
+}
 
 
 def unet_key_to_ours(key: str) -> str:
     """A key of the published UNet (without its prefix) -> the same weight in SV4D2UNet."""
-    for old, new in (("time_embed.0.", "time_embed.linear_1."), ("time_embed.2.", "time_embed.linear_2."),
-                     ("label_emb.0.0.", "label_emb.linear_1."), ("label_emb.0.2.", "label_emb.linear_2.")):
+    for old, new in (
+        ("time_embed.0.", "time_embed.linear_1."),
+        ("time_embed.2.", "time_embed.linear_2."),
+        ("label_emb.0.0.", "label_emb.linear_1."),
+        ("label_emb.0.2.", "label_emb.linear_2."),
+    ):
         if key.startswith(old):
-            return new + key[len(old):]
+            return new + key[len(old) :]
     m = re.match(r"(.*)\.time_mix_blocks\.(in_layers\.[02]|emb_layers\.1|out_layers\.[03]|skip_connection)\.(.*)$", key)
     if m:
         return f"{m[1]}.temporal_res_block.{_RES_SPATIAL[m[2]]}.{m[3]}"
@@ -486,17 +560,24 @@ def unet_key_to_ours(key: str) -> str:
     if m:
         return f"{m[1]}.spatial_res_block.{_RES_SPATIAL[m[2]]}.{m[3]}"
     key = re.sub(r"\.op\.(weight|bias)$", r".conv.\1", key)  # downsampling conv
-    return re.sub(r"\.(time_mix_time_embed|time_mix_motion_embed)\.([02])\.",
-                  lambda m: f".{m[1]}.linear_{1 if m[2] == '0' else 2}.", key)
+    return re.sub(
+        r"\.(time_mix_time_embed|time_mix_motion_embed)\.([02])\.",
+        lambda m: f".{m[1]}.linear_{1 if m[2] == '0' else 2}.",
+        key,
+    )
 
 
 def unet_key_to_published(key: str, downsample_keys: set[str]) -> str:
     """Inverse of ``unet_key_to_ours`` (``downsample_keys``: our keys of downsampling convs)."""
     inv = {v: k for k, v in _RES_SPATIAL.items()}
-    for old, new in (("time_embed.linear_1.", "time_embed.0."), ("time_embed.linear_2.", "time_embed.2."),
-                     ("label_emb.linear_1.", "label_emb.0.0."), ("label_emb.linear_2.", "label_emb.0.2.")):
+    for old, new in (
+        ("time_embed.linear_1.", "time_embed.0."),
+        ("time_embed.linear_2.", "time_embed.2."),
+        ("label_emb.linear_1.", "label_emb.0.0."),
+        ("label_emb.linear_2.", "label_emb.0.2."),
+    ):
         if key.startswith(old):
-            return new + key[len(old):]
+            return new + key[len(old) :]
     m = re.match(r"(.*)\.temporal_res_block\.(\w+)\.(.*)$", key)
     if m:
         return f"{m[1]}.time_mix_blocks.{inv[m[2]]}.{m[3]}"
@@ -505,23 +586,38 @@ def unet_key_to_published(key: str, downsample_keys: set[str]) -> str:
         return f"{m[1]}.{inv[m[2]]}.{m[3]}"
     if key in downsample_keys:
         return re.sub(r"\.conv\.(weight|bias)$", r".op.\1", key)
-    return re.sub(r"\.(time_mix_time_embed|time_mix_motion_embed)\.linear_([12])\.",
-                  lambda m: f".{m[1]}.{0 if m[2] == '1' else 2}.", key)
+    return re.sub(
+        r"\.(time_mix_time_embed|time_mix_motion_embed)\.linear_([12])\.",
+        lambda m: f".{m[1]}.{0 if m[2] == '1' else 2}.",
+        key,
+    )
 
 
 def _clip_renames(layers: int) -> list[tuple[str, str]]:
     """(OpenCLIP key, transformers key) of every CLIP weight that is only renamed: all but the projection
     (transposed) and the fused q/k/v input projection of each layer (split in three)."""
-    pairs = [("conv1.weight", "vision_model.embeddings.patch_embedding.weight"),
-             ("class_embedding", "vision_model.embeddings.class_embedding"),
-             ("positional_embedding", "vision_model.embeddings.position_embedding.weight")]
+    pairs = [
+        ("conv1.weight", "vision_model.embeddings.patch_embedding.weight"),
+        ("class_embedding", "vision_model.embeddings.class_embedding"),
+        ("positional_embedding", "vision_model.embeddings.position_embedding.weight"),
+    ]
     for p in ("weight", "bias"):
-        pairs += [(f"ln_pre.{p}", f"vision_model.pre_layrnorm.{p}"), (f"ln_post.{p}", f"vision_model.post_layernorm.{p}")]
+        pairs += [
+            (f"ln_pre.{p}", f"vision_model.pre_layrnorm.{p}"),
+            (f"ln_post.{p}", f"vision_model.post_layernorm.{p}"),
+        ]
         for i in range(layers):
             src, dst = f"transformer.resblocks.{i}.", f"vision_model.encoder.layers.{i}."
-            pairs += [(f"{src}{old}.{p}", f"{dst}{new}.{p}") for old, new in (
-                ("attn.out_proj", "self_attn.out_proj"), ("ln_1", "layer_norm1"), ("ln_2", "layer_norm2"),
-                ("mlp.c_fc", "mlp.fc1"), ("mlp.c_proj", "mlp.fc2"))]
+            pairs += [
+                (f"{src}{old}.{p}", f"{dst}{new}.{p}")
+                for old, new in (
+                    ("attn.out_proj", "self_attn.out_proj"),
+                    ("ln_1", "layer_norm1"),
+                    ("ln_2", "layer_norm2"),
+                    ("mlp.c_fc", "mlp.fc1"),
+                    ("mlp.c_proj", "mlp.fc2"),
+                )
+            ]
     return pairs
 
 
@@ -564,13 +660,25 @@ def vae_to_published(sd: dict, n_levels: int) -> dict:
         k = key
         k = re.sub(r"^encoder\.down_blocks\.(\d+)\.resnets\.", r"encoder.down.\1.block.", k)
         k = re.sub(r"^encoder\.down_blocks\.(\d+)\.downsamplers\.0\.", r"encoder.down.\1.downsample.", k)
-        k = re.sub(r"^decoder\.up_blocks\.(\d+)\.resnets\.", lambda m: f"decoder.up.{n_levels - 1 - int(m[1])}.block.", k)
-        k = re.sub(r"^decoder\.up_blocks\.(\d+)\.upsamplers\.0\.", lambda m: f"decoder.up.{n_levels - 1 - int(m[1])}.upsample.", k)
+        k = re.sub(
+            r"^decoder\.up_blocks\.(\d+)\.resnets\.", lambda m: f"decoder.up.{n_levels - 1 - int(m[1])}.block.", k
+        )
+        k = re.sub(
+            r"^decoder\.up_blocks\.(\d+)\.upsamplers\.0\.",
+            lambda m: f"decoder.up.{n_levels - 1 - int(m[1])}.upsample.",
+            k,
+        )
         k = re.sub(r"\.mid_block\.resnets\.(\d+)\.", lambda m: f".mid.block_{int(m[1]) + 1}.", k)
         k = k.replace(".mid_block.attentions.0.", ".mid.attn_1.").replace(".conv_shortcut.", ".nin_shortcut.")
         k = k.replace(".conv_norm_out.", ".norm_out.")
         if ".mid.attn_1." in k:
-            for old, new in (("group_norm", "norm"), ("to_q", "q"), ("to_k", "k"), ("to_v", "v"), ("to_out.0", "proj_out")):
+            for old, new in (
+                ("group_norm", "norm"),
+                ("to_q", "q"),
+                ("to_k", "k"),
+                ("to_v", "v"),
+                ("to_out.0", "proj_out"),
+            ):
                 k = k.replace(f".attn_1.{old}.", f".attn_1.{new}.")
             if val.ndim == 2:
                 val = val[:, :, None, None]  # the LDM attention projections are 1x1 convs
@@ -581,8 +689,10 @@ def vae_to_published(sd: dict, n_levels: int) -> dict:
 def check_checkpoint(path: str | os.PathLike) -> Path:
     """The checkpoint file inside folder ``path``, or MissingCheckpointError naming file and folder."""
     path = Path(path)
-    how = (f"accept the {LICENCE.split(' (')[0]} on the model page of {HF_REPO}, then "
-           f"`huggingface-cli download {HF_REPO} {CHECKPOINT_FILE} --local-dir {path}` and pass --checkpoint {path}")
+    how = (
+        f"accept the {LICENCE.split(' (')[0]} on the model page of {HF_REPO}, then "
+        f"`huggingface-cli download {HF_REPO} {CHECKPOINT_FILE} --local-dir {path}` and pass --checkpoint {path}"
+    )
     if path.is_file() and path.name.endswith(".safetensors"):
         path = path.parent
     if not path.is_dir():
@@ -624,8 +734,14 @@ def load_model(checkpoint: str | os.PathLike, device: str | None = None, dtype: 
     model = build_model(cfg)
     load_state_dict(model, sd, str(file))
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    names = {"auto": torch.bfloat16 if device.startswith("cuda") else torch.float32, "float32": torch.float32,
-             "bfloat16": torch.bfloat16, "bf16": torch.bfloat16, "float16": torch.float16, "fp16": torch.float16}
+    names = {
+        "auto": torch.bfloat16 if device.startswith("cuda") else torch.float32,
+        "float32": torch.float32,
+        "bfloat16": torch.bfloat16,
+        "bf16": torch.bfloat16,
+        "float16": torch.float16,
+        "fp16": torch.float16,
+    }
     if dtype not in names:
         raise UserError(f"--dtype must be one of {', '.join(names)}, got {dtype!r}")
     model.unet.to(names[dtype])
@@ -639,13 +755,20 @@ def load_state_dict(model, sd: dict, source: str = "checkpoint") -> None:
 
     cfg = model.cfg
     groups = {}
-    for name, prefix in (("UNet", UNET_PREFIX), ("CLIP image encoder", CLIP_PREFIX), ("VAE encoder", FRAMES_VAE_PREFIX),
-                         ("view VAE encoder", VIEW_VAE_PREFIX), ("VAE decoder", DECODER_PREFIX)):
-        groups[name] = {k[len(prefix):]: v.float() for k, v in sd.items() if k.startswith(prefix)}
+    for name, prefix in (
+        ("UNet", UNET_PREFIX),
+        ("CLIP image encoder", CLIP_PREFIX),
+        ("VAE encoder", FRAMES_VAE_PREFIX),
+        ("view VAE encoder", VIEW_VAE_PREFIX),
+        ("VAE decoder", DECODER_PREFIX),
+    ):
+        groups[name] = {k[len(prefix) :]: v.float() for k, v in sd.items() if k.startswith(prefix)}
     missing = [n for n, g in groups.items() if not g]
     if missing:
-        raise UserError(f"{source}: no {', '.join(missing)} weights (keys {UNET_PREFIX}*, {CLIP_PREFIX}*, "
-                        f"{FRAMES_VAE_PREFIX}*, {VIEW_VAE_PREFIX}*, {DECODER_PREFIX}*): not the SV4D 2.0 file from {HF_REPO}")
+        raise UserError(
+            f"{source}: no {', '.join(missing)} weights (keys {UNET_PREFIX}*, {CLIP_PREFIX}*, "
+            f"{FRAMES_VAE_PREFIX}*, {VIEW_VAE_PREFIX}*, {DECODER_PREFIX}*): not the SV4D 2.0 file from {HF_REPO}"
+        )
 
     def put(module, state, what):
         try:
@@ -686,15 +809,19 @@ def published_state_dict(model) -> dict:
     """Our model's weights in the published single-file layout (to write test checkpoints)."""
     cfg = model.cfg
     unet = model.unet.state_dict()
-    down = {k for k in unet if re.match(r"input_blocks\.\d+\.0\.conv\.(weight|bias)$", k)
-            and "Downsample" in type(model.unet.input_blocks[int(k.split(".")[1])][0]).__name__}
+    down = {
+        k
+        for k in unet
+        if re.match(r"input_blocks\.\d+\.0\.conv\.(weight|bias)$", k)
+        and "Downsample" in type(model.unet.input_blocks[int(k.split(".")[1])][0]).__name__
+    }
     out = {UNET_PREFIX + unet_key_to_published(k, down): v for k, v in unet.items()}
     clip = clip_to_published(model.image_encoder.state_dict(), cfg.clip_layers)
     out.update({CLIP_PREFIX + k: v for k, v in clip.items()})
     vae = vae_to_published(model.vae.state_dict(), len(cfg.vae_channels))
     for prefix in (FRAMES_VAE_PREFIX, VIEW_VAE_PREFIX):
         out.update({prefix + k: v for k, v in vae.items()})  # the conditioner keeps whole VAEs
-    out.update({DECODER_PREFIX + k[len("decoder."):]: v for k, v in vae.items() if k.startswith("decoder.")})
+    out.update({DECODER_PREFIX + k[len("decoder.") :]: v for k, v in vae.items() if k.startswith("decoder.")})
     return {k: v.detach().clone().contiguous() for k, v in out.items()}  # no shared storage (safetensors)
 
 
@@ -759,11 +886,15 @@ def plan_passes(num_frames: int, novel_views: list[int], frames_per_pass: int, v
     back to end on the last frame.
     """
     if num_frames < frames_per_pass:
-        raise UserError(f"SV4D 2.0 makes {frames_per_pass} frames per pass: the input video has {num_frames} "
-                        f"frames; make at least {frames_per_pass} (--frames)")
+        raise UserError(
+            f"SV4D 2.0 makes {frames_per_pass} frames per pass: the input video has {num_frames} "
+            f"frames; make at least {frames_per_pass} (--frames)"
+        )
     if len(novel_views) < views_per_pass:
-        raise UserError(f"SV4D 2.0 makes {views_per_pass} views per pass: the grid needs at least that many "
-                        f"views besides the input one, got {len(novel_views)}")
+        raise UserError(
+            f"SV4D 2.0 makes {views_per_pass} views per pass: the grid needs at least that many "
+            f"views besides the input one, got {len(novel_views)}"
+        )
     starts, t0 = [], 0
     while True:
         t0 = min(t0, num_frames - frames_per_pass)
@@ -774,13 +905,20 @@ def plan_passes(num_frames: int, novel_views: list[int], frames_per_pass: int, v
     groups, i = [], 0
     while i < len(novel_views):
         j = min(i, len(novel_views) - views_per_pass)
-        groups.append(list(novel_views[j:j + views_per_pass]))
+        groups.append(list(novel_views[j : j + views_per_pass]))
         i += views_per_pass
     return [Pass(list(range(s, s + frames_per_pass)), g, s) for g in groups for s in starts]
 
 
-def make_grid_frames(model, video: np.ndarray, orbit: np.ndarray, azimuths_deg, canonical: int,
-                     config: SV4D2GridConfig = SV4D2GridConfig(), progress=None) -> tuple[np.ndarray, list[Pass]]:
+def make_grid_frames(
+    model,
+    video: np.ndarray,
+    orbit: np.ndarray,
+    azimuths_deg,
+    canonical: int,
+    config: SV4D2GridConfig = SV4D2GridConfig(),
+    progress=None,
+) -> tuple[np.ndarray, list[Pass]]:
     """Fixed-view video + fixed-time orbit renders -> the V x T grid's frames.
 
     video [T, S, S, 3] uint8 (the canonical view over time); orbit [V, S, S, 3] uint8 (the static
@@ -794,14 +932,19 @@ def make_grid_frames(model, video: np.ndarray, orbit: np.ndarray, azimuths_deg, 
     nt, size = video.shape[0], video.shape[1]
     nv = orbit.shape[0]
     if video.shape[1:] != (size, size, 3) or orbit.shape[1:] != (size, size, 3):
-        raise UserError(f"SV4D 2.0 needs square frames of one size: video {video.shape[1:]}, orbit renders {orbit.shape[1:]}")
+        raise UserError(
+            f"SV4D 2.0 needs square frames of one size: video {video.shape[1:]}, orbit renders {orbit.shape[1:]}"
+        )
     cfg = model.cfg
     res = cfg.image_size
 
     def to_model(x):  # [N, S, S, 3] uint8 -> [N, 3, res, res] in [-1, 1]
         t = torch.from_numpy(np.ascontiguousarray(x)).permute(0, 3, 1, 2).float() / 127.5 - 1.0
-        return F.interpolate(t, size=(res, res), mode="bicubic", align_corners=False, antialias=True).clamp(-1, 1) \
-            if res != size else t
+        return (
+            F.interpolate(t, size=(res, res), mode="bicubic", align_corners=False, antialias=True).clamp(-1, 1)
+            if res != size
+            else t
+        )
 
     def to_grid(x):  # [N, 3, res, res] in [0, 1] -> [N, S, S, 3] uint8
         if res != size:
@@ -852,6 +995,22 @@ def make_grid_frames(model, video: np.ndarray, orbit: np.ndarray, azimuths_deg, 
     return out, passes
 
 
-__all__ = ["SV4D2Config", "SV4D2SamplerConfig", "tiny_config", "build_model", "load_model", "check_checkpoint",
-           "write_checkpoint", "write_tiny_checkpoint", "published_state_dict", "load_state_dict", "HF_REPO",
-           "CHECKPOINT_FILE", "LICENCE", "SV4D2GridConfig", "Pass", "plan_passes", "make_grid_frames"]
+__all__ = [
+    "SV4D2Config",
+    "SV4D2SamplerConfig",
+    "tiny_config",
+    "build_model",
+    "load_model",
+    "check_checkpoint",
+    "write_checkpoint",
+    "write_tiny_checkpoint",
+    "published_state_dict",
+    "load_state_dict",
+    "HF_REPO",
+    "CHECKPOINT_FILE",
+    "LICENCE",
+    "SV4D2GridConfig",
+    "Pass",
+    "plan_passes",
+    "make_grid_frames",
+]

@@ -43,19 +43,46 @@ def check_config(cfg: GridConfig) -> None:
         raise UserError(f"shading must be unlit or lambert, got {cfg.shading!r}")
 
 
-def make_grid(mesh: Mesh, expression: str, sample: int = 0, seed: int = 0, config: GridConfig = GridConfig(),
-              defects: DefectConfig = DefectConfig(), renderer=None, prompt: str | None = None,
-              progress=None) -> VideoGrid:
+def make_grid(
+    mesh: Mesh,
+    expression: str,
+    sample: int = 0,
+    seed: int = 0,
+    config: GridConfig = GridConfig(),
+    defects: DefectConfig = DefectConfig(),
+    renderer=None,
+    prompt: str | None = None,
+    progress=None,
+) -> VideoGrid:
     """Animate ``mesh`` (canonical frame) with ``expression`` and render the V x T grid."""
     check_config(config)
-    anim = animate(mesh, expression, seed=seed, sample=sample,
-                   config=AnimationConfig(config.frames, config.fps, config.intensity, config.head_motion))
-    return render_grid(mesh, anim, config, defects, renderer, meta={
-        "prompt": prompt or expression, "expression": expression, "sample": sample, "seed": seed}, progress=progress)
+    anim = animate(
+        mesh,
+        expression,
+        seed=seed,
+        sample=sample,
+        config=AnimationConfig(config.frames, config.fps, config.intensity, config.head_motion),
+    )
+    return render_grid(
+        mesh,
+        anim,
+        config,
+        defects,
+        renderer,
+        meta={"prompt": prompt or expression, "expression": expression, "sample": sample, "seed": seed},
+        progress=progress,
+    )
 
 
-def render_grid(mesh: Mesh, anim: Animation, config: GridConfig = GridConfig(), defects: DefectConfig = DefectConfig(),
-                renderer=None, meta: dict | None = None, progress=None) -> VideoGrid:
+def render_grid(
+    mesh: Mesh,
+    anim: Animation,
+    config: GridConfig = GridConfig(),
+    defects: DefectConfig = DefectConfig(),
+    renderer=None,
+    meta: dict | None = None,
+    progress=None,
+) -> VideoGrid:
     """Render ``anim`` from the orbit cameras; defects on every view but the canonical one."""
     check_config(config)
     own = renderer is None
@@ -101,11 +128,20 @@ def _render(mesh, anim, config, defects, renderer, meta, progress) -> VideoGrid:
     diag = mesh.bbox_diagonal()
     for v in others:
         off = view_distortion(mesh.vertices, v, float(azimuths[v]), defects)  # [N, 3]
-        view_verts[v] = anim.vertices if not off.any() else apply_head_motion(anim.morphed + off[None], anim.head_angles, anim.pivot)
+        view_verts[v] = (
+            anim.vertices
+            if not off.any()
+            else apply_head_motion(anim.morphed + off[None], anim.head_angles, anim.pivot)
+        )
         apps[v] = None if defects.is_clean else view_appearance(v, float(azimuths[v]), T, S, cams[v].position, defects)
-        view_stats.append({"view": v, "azimuth": float(azimuths[v]),
-                           "geometry_offset_max": float(np.linalg.norm(off, axis=1).max() / diag),
-                           "blur_sigma_px": apps[v].blur_sigma if apps[v] is not None else 0.0})
+        view_stats.append(
+            {
+                "view": v,
+                "azimuth": float(azimuths[v]),
+                "geometry_offset_max": float(np.linalg.norm(off, axis=1).max() / diag),
+                "blur_sigma_px": apps[v].blur_sigma if apps[v] is not None else 0.0,
+            }
+        )
     # Time outer, views inner: one noisy texture per frame, shared by the views (appendix).
     for t in range(T):
         colors = noisy_colors(base_colors, t, defects)
@@ -125,5 +161,6 @@ def _render(mesh, anim, config, defects, renderer, meta, progress) -> VideoGrid:
             **anim.info,
         },
     }
-    return VideoGrid(frames, cams, anim.times.astype(np.float32), canon, masks, anim.vertices.astype(np.float32),
-                     "procedural", info).validate("procedural grid")
+    return VideoGrid(
+        frames, cams, anim.times.astype(np.float32), canon, masks, anim.vertices.astype(np.float32), "procedural", info
+    ).validate("procedural grid")

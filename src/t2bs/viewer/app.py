@@ -24,9 +24,7 @@ Python API (used by the tests and scripts)::
 from __future__ import annotations
 
 import csv
-import json
 import math
-import struct
 import sys
 import threading
 import time
@@ -38,7 +36,7 @@ import numpy as np
 from t2bs.errors import UserError
 from t2bs.geometry.camera import ORBIT_FOV_Y, frontal_camera
 from t2bs.geometry.mesh import Mesh, incident_edge_lengths, vertex_normals
-from t2bs.geometry.io import srgb_to_linear
+from t2bs.geometry.io import glb_bytes
 
 TIME_COLUMNS = ("time", "t", "time_s", "seconds", "timestamp")  # weights.csv: seconds per row
 FRAME_COLUMNS = ("frame", "index", "frame_index")  # weights.csv: row index, ignored for timing
@@ -94,7 +92,9 @@ def load_character(root: Path) -> Mesh:
         path = root.joinpath(*rel)
         if path.exists():
             return load_mesh(path)
-    raise UserError(f"{root}: nothing to view (no character/mesh.glb or blendshapes/model.glb); run `t2bs create` or `t2bs render` first")
+    raise UserError(
+        f"{root}: nothing to view (no character/mesh.glb or blendshapes/model.glb); run `t2bs create` or `t2bs render` first"
+    )
 
 
 def _pca_range(basis_k: np.ndarray, capture_w: np.ndarray | None, diag: float) -> float:
@@ -141,15 +141,19 @@ def load_shapes(root: Path, mesh: Mesh) -> tuple[np.ndarray, list[Shape], str]:
     allw = np.concatenate(list(model.capture_weights.values())) if model.capture_weights else None  # [M, K]
     for k in model.visible_components():  # the components that move something visible (model.py)
         name = model.names[k]
-        r = _pca_range(model.basis[k], None if allw is None or allw.shape[1] != model.num_components else allw[:, k], diag)
+        r = _pca_range(
+            model.basis[k], None if allw is None or allw.shape[1] != model.num_components else allw[:, k], diag
+        )
         shapes.append(Shape(str(name), "pca", model.basis[k].astype(np.float32), -r, r))
     names = [s.name for s in shapes]
     if len(set(names)) != len(names):
         dup = sorted({x for x in names if names.count(x) > 1})
         raise UserError(f"{path}: blendshape names are not unique ({', '.join(dup)})")
-    what = (f"{len([s for s in shapes if s.group.startswith('arkit/')])} ARKit shapes, "
-            f"{len([s for s in shapes if s.group == 'semantic'])} named shapes, "
-            f"{len(model.visible_components())} of {model.num_components} PCA components (the visible ones)")
+    what = (
+        f"{len([s for s in shapes if s.group.startswith('arkit/')])} ARKit shapes, "
+        f"{len([s for s in shapes if s.group == 'semantic'])} named shapes, "
+        f"{len(model.visible_components())} of {model.num_components} PCA components (the visible ones)"
+    )
     return model.neutral.astype(np.float32), shapes, what
 
 
@@ -259,41 +263,6 @@ def load_retarget(root: Path, name: str, shapes: list[Shape]) -> Retarget:
 # ------------------------------------------------------------------------------------ geometry
 
 
-def mesh_glb(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray) -> bytes:
-    """A one-primitive binary glTF: POSITION, NORMAL, COLOR_0 (linear RGB float) and u32 indices."""
-    v = np.ascontiguousarray(vertices, np.float32)  # [N, 3]
-    nrm = np.ascontiguousarray(vertex_normals(v, faces), np.float32)  # [N, 3]
-    col = np.ascontiguousarray(colors_linear, np.float32)  # [N, 3]
-    idx = np.ascontiguousarray(faces, np.uint32).reshape(-1)  # [3F]
-    blobs = [v.tobytes(), nrm.tobytes(), col.tobytes(), idx.tobytes()]  # every length is a multiple of 4
-    offsets = np.cumsum([0] + [len(b) for b in blobs])
-    n = v.shape[0]
-    views = [{"buffer": 0, "byteOffset": int(offsets[i]), "byteLength": len(b), "target": 34962 if i < 3 else 34963}
-             for i, b in enumerate(blobs)]
-    accessors = [
-        {"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3", "min": v.min(0).tolist(), "max": v.max(0).tolist()},
-        {"bufferView": 1, "componentType": 5126, "count": n, "type": "VEC3"},
-        {"bufferView": 2, "componentType": 5126, "count": n, "type": "VEC3"},
-        {"bufferView": 3, "componentType": 5125, "count": int(idx.size), "type": "SCALAR"},
-    ]
-    gltf = {
-        "asset": {"version": "2.0", "generator": "t2bs viewer"},
-        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "character"}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "material": 0}]}],
-        # Not metallic, fairly rough: a painted character, not chrome. Double-sided because
-        # generated characters often have open boundaries (mouth interior, eyelids).
-        "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": 0.75},
-                       "doubleSided": True}],
-        "buffers": [{"byteLength": int(offsets[-1])}], "bufferViews": views, "accessors": accessors,
-    }
-    js = json.dumps(gltf, separators=(",", ":")).encode()
-    js += b" " * (-len(js) % 4)
-    binary = b"".join(blobs)
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    return b"".join([struct.pack("<III", 0x46546C67, 2, total), struct.pack("<II", len(js), 0x4E4F534A), js,
-                     struct.pack("<II", len(binary), 0x004E4942), binary])
-
-
 def vertex_splat_sigma(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[N] tangential std-dev of one Gaussian per vertex: half the mean incident edge length, so
     neighbouring splats overlap into a closed surface."""
@@ -316,8 +285,14 @@ def splat_covariances(vertices: np.ndarray, faces: np.ndarray, sigma_t: np.ndarr
 class ViewerApp:
     """A running viewer for one project folder (state: the server, its GUI and the shown pose)."""
 
-    def __init__(self, project_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, splats: bool = False,
-                 verbose: bool = False):
+    def __init__(
+        self,
+        project_dir: str | Path,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        splats: bool = False,
+        verbose: bool = False,
+    ):
         try:
             import viser
         except ImportError:
@@ -332,9 +307,13 @@ class ViewerApp:
         n = self.mesh.num_vertices
         self.faces = self.mesh.faces.astype(np.int64)
         self.colors = self.mesh.vertex_rgb().astype(np.float32)  # [N, 3] display colours
-        self._colors_linear = srgb_to_linear(self.colors)
-        self._stack = (np.stack([s.offsets for s in self.shapes]).reshape(len(self.shapes), -1)
-                       if self.shapes else np.zeros((0, n * 3), np.float32))  # [M, 3N]
+        # What the browser gets on every change: this mesh with the shown vertices (vertex colours, no morph targets).
+        self._display = Mesh(self.neutral, self.faces, vertex_colors=self.colors)
+        self._stack = (
+            np.stack([s.offsets for s in self.shapes]).reshape(len(self.shapes), -1)
+            if self.shapes
+            else np.zeros((0, n * 3), np.float32)
+        )  # [M, 3N]
         self._sigma = vertex_splat_sigma(self.neutral, self.faces)
         self.capture_ids = list_captures(self.root)
         self.retarget_names = list_retargets(self.root)
@@ -494,7 +473,9 @@ class ViewerApp:
         # A hemisphere fill plus a key light from the camera's upper left, fixed in the world.
         s.scene.configure_environment_map(None)
         s.scene.configure_default_lights(False)
-        s.scene.add_light_hemisphere("/lights/fill", sky_color=(255, 255, 255), ground_color=(110, 100, 95), intensity=1.2)
+        s.scene.add_light_hemisphere(
+            "/lights/fill", sky_color=(255, 255, 255), ground_color=(110, 100, 95), intensity=1.2
+        )
         s.scene.add_light_point("/lights/key", intensity=2.0, position=(0.9, 1.3, 2.4), decay=0.0)
         self._mesh_handle = None
         self._splat_handle = None
@@ -511,8 +492,9 @@ class ViewerApp:
             frontal.on_click(lambda _: self.focus_frontal())
             mesh_box = gui.add_checkbox("Mesh", initial_value=not splats)
             splat_box = gui.add_checkbox("Gaussian splats", initial_value=splats)
-            env_box = gui.add_checkbox("Environment light", initial_value=False,
-                                       hint="image-based lighting; slow to start without a GPU")
+            env_box = gui.add_checkbox(
+                "Environment light", initial_value=False, hint="image-based lighting; slow to start without a GPU"
+            )
 
             @env_box.on_update
             def _(_event) -> None:
@@ -532,11 +514,22 @@ class ViewerApp:
 
         self._timelines = {
             "capture": self._add_timeline(
-                "capture", "capture", "Captures", ("Capture", "Capture frame", "Play capture"), self.capture_ids,
-                "No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).", image=True),
+                "capture",
+                "capture",
+                "Captures",
+                ("Capture", "Capture frame", "Play capture"),
+                self.capture_ids,
+                "No reconstructed captures (`recon/VIDEO_ID/vertices.npy`).",
+                image=True,
+            ),
             "retarget": self._add_timeline(
-                "retarget", "retargeting", "Retargeting", ("Result", "Retarget frame", "Play retargeting"),
-                self.retarget_names, "No retargeting results (`retarget/NAME/weights.csv`)."),
+                "retarget",
+                "retargeting",
+                "Retargeting",
+                ("Result", "Retarget frame", "Play retargeting"),
+                self.retarget_names,
+                "No retargeting results (`retarget/NAME/weights.csv`).",
+            ),
         }
 
         with gui.add_folder("Blendshapes"):
@@ -567,7 +560,7 @@ class ViewerApp:
     def _add_sliders(self, members: list, strip: str = "") -> None:
         """One slider per (index, Shape) in the current GUI folder."""
         for i, s in members:
-            label = s.name[len(strip):] if strip and s.name.startswith(strip) else s.name
+            label = s.name[len(strip) :] if strip and s.name.startswith(strip) else s.name
             step = float(f"{(s.hi - s.lo) / 200:.2g}") or 1e-3
             h = self.server.gui.add_slider(label, min=s.lo, max=s.hi, step=step, initial_value=0.0)
             h.on_update(self._slider_callback(i))
@@ -581,11 +574,16 @@ class ViewerApp:
         self.landmarks_path = self.root / "landmarks" / PICKED
         self.picks = LandmarkPicks.for_project(self.root, self.mesh.num_vertices)
         with gui.add_folder("Landmarks (auto rig)", expand_by_default=False):
-            gui.add_markdown("Click the 20 points (68-point numbers; right / left are the character's own) for "
-                             "`t2bs autorig --landmarks` and the video stage's auto rig.")
+            gui.add_markdown(
+                "Click the 20 points (68-point numbers; right / left are the character's own) for "
+                "`t2bs autorig --landmarks` and the video stage's auto rig."
+            )
             labels = [f"{k}: {d}" for k, d in SLOTS]
-            self._pick_slot = gui.add_dropdown("Point", labels, initial_value=labels[SLOTS.index(
-                next(x for x in SLOTS if x[0] == self.picks.next_slot()))])
+            self._pick_slot = gui.add_dropdown(
+                "Point",
+                labels,
+                initial_value=labels[SLOTS.index(next(x for x in SLOTS if x[0] == self.picks.next_slot()))],
+            )
             self._pick_on = gui.add_checkbox("Pick by clicking", initial_value=False)
             save = gui.add_button("Save landmarks")
             self._pick_note = gui.add_markdown(self._picks_note())
@@ -623,28 +621,41 @@ class ViewerApp:
         self._pick_slot.value = next(f"{k}: {d}" for k, d in SLOTS if k == nxt)
         self._pick_note.content = self._picks_note()
         picked = np.asarray(list(self.picks.ids.values()), np.int64)
-        self.server.scene.add_point_cloud("/landmarks", points=verts[picked].astype(np.float32),
-                                          colors=(255, 220, 0), point_size=0.012)
+        self.server.scene.add_point_cloud(
+            "/landmarks", points=verts[picked].astype(np.float32), colors=(255, 220, 0), point_size=0.012
+        )
         return vid
 
     def save_landmarks(self) -> Path:
         """Write the picks to DIR/landmarks/picked.json (UserError naming the points still missing)."""
         return self.picks.save(self.landmarks_path)
 
-    def _add_timeline(self, kind: str, title: str, folder: str, labels: tuple[str, str, str], names: list[str],
-                      empty: str, image: bool = False) -> Timeline:
+    def _add_timeline(
+        self,
+        kind: str,
+        title: str,
+        folder: str,
+        labels: tuple[str, str, str],
+        names: list[str],
+        empty: str,
+        image: bool = False,
+    ) -> Timeline:
         """One timeline panel: a dropdown of ``names``, a frame slider and a play box (``labels``)."""
         gui = self.server.gui
         with gui.add_folder(folder):
             if not names:
                 gui.add_markdown(empty)
-            tl = Timeline(kind, title,
-                          dropdown=gui.add_dropdown(labels[0], (NONE, *names), initial_value=NONE, disabled=not names),
-                          frame=gui.add_slider(labels[1], min=0, max=1, step=1, initial_value=0, disabled=True),
-                          play=gui.add_checkbox(labels[2], initial_value=False, disabled=True),
-                          note=gui.add_markdown(""),
-                          image=gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)",
-                                              visible=False) if image else None)
+            tl = Timeline(
+                kind,
+                title,
+                dropdown=gui.add_dropdown(labels[0], (NONE, *names), initial_value=NONE, disabled=not names),
+                frame=gui.add_slider(labels[1], min=0, max=1, step=1, initial_value=0, disabled=True),
+                play=gui.add_checkbox(labels[2], initial_value=False, disabled=True),
+                note=gui.add_markdown(""),
+                image=gui.add_image(np.full((8, 8, 3), 255, np.uint8), label="input (canonical view)", visible=False)
+                if image
+                else None,
+            )
 
         @tl.dropdown.on_update
         def _(_event) -> None:
@@ -700,7 +711,9 @@ class ViewerApp:
             self._captures[vid] = cap
             # A character has ~60 captures of [49, N, 3]; keep a few, never the one on screen.
             shown = self._mode[1] if self._mode[0] == "capture" else None
-            for old in [k for k in self._captures if k not in (vid, shown)][: max(len(self._captures) - CAPTURE_CACHE, 0)]:
+            for old in [k for k in self._captures if k not in (vid, shown)][
+                : max(len(self._captures) - CAPTURE_CACHE, 0)
+            ]:
                 del self._captures[old]
         return cap
 
@@ -796,7 +809,8 @@ class ViewerApp:
         scene = self.server.scene
         self._shown_vertices = verts
         if show_mesh:
-            glb = mesh_glb(verts, self.faces, self._colors_linear)
+            # Not metallic, fairly rough (0.75): a painted character, not chrome.
+            glb = glb_bytes(self._display.with_vertices(verts), roughness=0.75)
             if self._mesh_handle is None:
                 self._mesh_handle = scene.add_glb(MESH_NODE, glb, cast_shadow=False, receive_shadow=False)
             else:
@@ -807,8 +821,13 @@ class ViewerApp:
         if show_splats:
             # viser's splat node takes the whole buffer at once: re-adding replaces it.
             cov = splat_covariances(verts, self.faces, self._sigma)
-            self._splat_handle = scene.add_gaussian_splats(SPLAT_NODE, centers=verts.astype(np.float32), covariances=cov,
-                                                           rgbs=self.colors, opacities=np.ones((len(verts), 1), np.float32))
+            self._splat_handle = scene.add_gaussian_splats(
+                SPLAT_NODE,
+                centers=verts.astype(np.float32),
+                covariances=cov,
+                rgbs=self.colors,
+                opacities=np.ones((len(verts), 1), np.float32),
+            )
         elif self._splat_handle is not None:
             self._splat_handle.remove()
             self._splat_handle = None

@@ -38,12 +38,15 @@ def _per_camera(name: str, x: torch.Tensor, C: int, tail: tuple[int, ...]) -> to
     if x.dim() == 2 + len(tail) and x.shape[0] == C and tuple(x.shape[2:]) == tail:
         return x
     want = "x".join(str(t) for t in tail)
-    raise UserError(f"rasterize_gaussians: {name} has shape {tuple(x.shape)}, expected [N{',' + want if tail else ''}] "
-                    f"or [C={C}, N{',' + want if tail else ''}]")
+    raise UserError(
+        f"rasterize_gaussians: {name} has shape {tuple(x.shape)}, expected [N{',' + want if tail else ''}] "
+        f"or [C={C}, N{',' + want if tail else ''}]"
+    )
 
 
-def rasterize_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                        background=None, backend="auto", near=0.01):
+def rasterize_gaussians(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, background=None, backend="auto", near=0.01
+):
     """Render Gaussians into C cameras.
 
     Args (N Gaussians, C cameras; each Gaussian tensor is either shared [N, ...] or per camera
@@ -91,7 +94,9 @@ def rasterize_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, w
         if background.shape == (3,):
             background = background.expand(C, 3)
         elif tuple(background.shape) != (C, 3):
-            raise UserError(f"rasterize_gaussians: background has shape {tuple(background.shape)}, expected [3] or [{C}, 3]")
+            raise UserError(
+                f"rasterize_gaussians: background has shape {tuple(background.shape)}, expected [3] or [{C}, 3]"
+            )
 
     if backend == "auto":
         backend = "gsplat" if (dev.type == "cuda" and _gsplat_available()) else "cpu"

@@ -78,7 +78,7 @@ def _timed(params, vm, K, size, backend, weights, repeats, per_camera=False):
         if per_camera:
             total, outs = 0.0, []
             for c in range(vm.shape[0]):
-                dt, o = fwd_bwd(params, vm[c:c + 1], K[c:c + 1], size, backend, weights[c:c + 1])
+                dt, o = fwd_bwd(params, vm[c : c + 1], K[c : c + 1], size, backend, weights[c : c + 1])
                 total += dt
                 outs.append(o)
             out = {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
@@ -98,9 +98,19 @@ def _pairs(params, vm, K, size) -> int:
     with torch.no_grad():
         ps = [p.unsqueeze(0).expand(C, *p.shape) for p in params]
         pr = project_gaussians(*ps, vm, K, size, size)
-        res = load_kernel().forward(pr.means2d.contiguous(), pr.conics.contiguous(), pr.opacities.contiguous(),
-                                    pr.colors.contiguous(), pr.depths.contiguous(), pr.d2max.contiguous(),
-                                    pr.radii.contiguous(), pr.valid.contiguous(), size, size, TILE)
+        res = load_kernel().forward(
+            pr.means2d.contiguous(),
+            pr.conics.contiguous(),
+            pr.opacities.contiguous(),
+            pr.colors.contiguous(),
+            pr.depths.contiguous(),
+            pr.d2max.contiguous(),
+            pr.radii.contiguous(),
+            pr.valid.contiguous(),
+            size,
+            size,
+            TILE,
+        )
     return int(res[6].numel())
 
 
@@ -114,8 +124,17 @@ def run_case(name: str, repeats: int = 5, with_reference: bool = True, with_dens
     weights = torch.rand(cams, size, size, 5, generator=torch.Generator().manual_seed(1))
     fwd_bwd(params, vm, K, size, "cpu", weights)  # warm-up (kernel build/load, allocator)
     fast_s, fast = _timed(params, vm, K, size, "cpu", weights, repeats)
-    result = {"name": name, "height": size, "width": size, "gaussians": n, "cameras": cams,
-              "fast_ms": round(fast_s * 1e3, 2), "reference_ms": None, "dense_ms": None, "max_abs_diff": None}
+    result = {
+        "name": name,
+        "height": size,
+        "width": size,
+        "gaussians": n,
+        "cameras": cams,
+        "fast_ms": round(fast_s * 1e3, 2),
+        "reference_ms": None,
+        "dense_ms": None,
+        "max_abs_diff": None,
+    }
     diffs, depth_diffs = [], []
     fast_pc = None  # fast path run one camera at a time, to diff against per-camera baselines
 
@@ -178,10 +197,13 @@ def main(cases: str = "a,b,c", repeats: int = 5, threads: int = 2) -> dict:
             cpu_name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    report = {"cases": out,
-              "device": f"cpu: {cpu_name}, torch threads={threads}, os.cpu_count={os.cpu_count()}",
-              "load_average_1m": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-              "repeats": repeats, "statistic": "median",
-              "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default (spinning)")}
+    report = {
+        "cases": out,
+        "device": f"cpu: {cpu_name}, torch threads={threads}, os.cpu_count={os.cpu_count()}",
+        "load_average_1m": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
+        "repeats": repeats,
+        "statistic": "median",
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default (spinning)"),
+    }
     print(json.dumps(report), flush=True)
     return report

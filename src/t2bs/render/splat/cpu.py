@@ -4,8 +4,9 @@ Both stages run in C++ with hand-written backwards on torch.get_num_threads() th
 projection (projection.cpp: the rules of reference.project_gaussians in one pass per Gaussian,
 ~10x faster than its ~60 element-wise torch ops) and the per-pixel compositing (kernel.cpp, parallel
 over (camera, tile) work items), where most of the time goes.
-The build lands in $XDG_CACHE_HOME/t2bs/torch_extensions (default ~/.cache), so a fresh clone
-builds it on first use (~30-60 s, once); if that fails the reference is used with a warning.
+The build lands in $XDG_CACHE_HOME/t2bs/torch_extensions (default ~/.cache), one folder per torch
+installation (``build_directory``), so a fresh clone or environment builds it on first use (1-3 min on
+2 cores, once, announced by one line on stderr); if that fails the reference is used with a warning.
 """
 
 from __future__ import annotations
@@ -31,14 +32,45 @@ _module = None
 _error: str | None = None
 
 
+BUILD_MESSAGE = "t2bs: compiling the C++ splat kernel (first use with this torch installation, ~1-3 min)..."
+
+
+def torch_installation() -> str:
+    """What a build of the kernel is only valid for: torch's folder and version, and the Python running it."""
+    py = f"{sys.implementation.cache_tag}-{sys.version_info[0]}.{sys.version_info[1]}"
+    return f"{Path(torch.__file__).resolve().parent}|{torch.__version__}|{py}"
+
+
 def build_directory() -> Path:
+    """$XDG_CACHE_HOME/t2bs/torch_extensions/<one folder per (sources, flags, torch installation)>.
+
+    torch rebuilds when a listed source changes, not when a header does: the folder names them all. It also names the
+    flags and where the sources and torch live: ninja rebuilds when a source's path or torch's changes, so two checkouts
+    or two environments (venvs, conda) on one machine would otherwise rebuild the one folder in turn.
+    """
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    # torch rebuilds when a listed source changes, not when a header does: the folder names them all. It also names
-    # where the sources and torch live: ninja rebuilds when a source's path changes, so two checkouts or two torch
-    # installations on one machine would otherwise rebuild the one folder in turn.
-    where = f"{_HERE.resolve()}|{Path(torch.__file__).resolve().parent}".encode()
+    where = f"{_HERE.resolve()}|{torch_installation()}|{' '.join(_CFLAGS)}".encode()
     digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS) + where).hexdigest()[:10]
     return base / "t2bs" / "torch_extensions" / f"splat_cpu_torch{torch.__version__.replace('+', '_')}_{digest}"
+
+
+def is_built(path: Path) -> bool:
+    """Whether ``path`` holds a finished build (the linked module; an interrupted build leaves none)."""
+    return any(path.glob("t2bs_splat_cpu*.so"))
+
+
+def _compile(path: Path):
+    """torch.utils.cpp_extension.load: builds into ``path`` with ninja when needed, then imports the module."""
+    from torch.utils.cpp_extension import load
+
+    return load(
+        name="t2bs_splat_cpu",
+        sources=[str(p) for p in _SOURCES],
+        extra_cflags=_CFLAGS,
+        extra_ldflags=["-pthread"],
+        build_directory=str(path),
+        verbose=False,
+    )
 
 
 def load_kernel():
@@ -49,15 +81,11 @@ def load_kernel():
     with _lock:
         if _module is None and _error is None:
             try:
-                from torch.utils.cpp_extension import load
-
                 path = build_directory()
                 path.mkdir(parents=True, exist_ok=True)
-                if not any(path.glob("t2bs_splat_cpu*.so")):
-                    print(f"t2bs: compiling the C++ splatting kernel once (1-3 min on 2 cores) into {path}",
-                          file=sys.stderr, flush=True)
-                _module = load(name="t2bs_splat_cpu", sources=[str(p) for p in _SOURCES], extra_cflags=_CFLAGS,
-                               extra_ldflags=["-pthread"], build_directory=str(path), verbose=False)
+                if not is_built(path):  # one line, so a silent minute inside a progress bar has a reason
+                    print(BUILD_MESSAGE, file=sys.stderr, flush=True)
+                _module = _compile(path)
             except Exception as exc:  # compiler missing, headers missing, link error, ...
                 _error = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc}"
     return _module
@@ -81,7 +109,8 @@ class _Project(torch.autograd.Function):
         ext = load_kernel()
         args = [t.detach().contiguous() for t in (means, quats, scales, viewmats, Ks)]
         means2d, conics, depths, d2max, radii, valid = ext.project_forward(
-            *args[:3], opacities.detach().contiguous(), *args[3:], width, height, near)
+            *args[:3], opacities.detach().contiguous(), *args[3:], width, height, near
+        )
         ctx.save_for_backward(*args)
         ctx.size = (width, height, near)
         ctx.mark_non_differentiable(d2max, radii, valid)
@@ -93,11 +122,21 @@ class _Project(torch.autograd.Function):
         means, quats, scales, viewmats, Ks = ctx.saved_tensors
         C, N = viewmats.shape[0], means.shape[1]
 
-        grads = ext.project_backward(means, quats, scales, viewmats, Ks, *ctx.size, _grad_in(g_means2d, (C, N, 2)),
-                                     _grad_in(g_conics, (C, N, 3)), _grad_in(g_depths, (C, N)))
+        grads = ext.project_backward(
+            means,
+            quats,
+            scales,
+            viewmats,
+            Ks,
+            *ctx.size,
+            _grad_in(g_means2d, (C, N, 2)),
+            _grad_in(g_conics, (C, N, 3)),
+            _grad_in(g_depths, (C, N)),
+        )
         # Per-camera gradients; a set shared by every camera ([1, N, k]) sums them (fixed order).
-        g_means, g_quats, g_scales = (g if x.shape[0] == C else g.sum(0, keepdim=True)
-                                      for g, x in zip(grads, (means, quats, scales)))
+        g_means, g_quats, g_scales = (
+            g if x.shape[0] == C else g.sum(0, keepdim=True) for g, x in zip(grads, (means, quats, scales))
+        )
         return g_means, g_quats, g_scales, None, None, None, None, None, None
 
 
@@ -106,14 +145,19 @@ def project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, he
     the kernel is missing, a tensor is not float32 on the CPU, or the cameras need a gradient
     (the C++ backward gives none to them)."""
     tensors = (means, quats, scales, opacities, colors, viewmats, Ks)
-    if (load_kernel() is None or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors)
-            or viewmats.requires_grad or Ks.requires_grad):
+    if (
+        load_kernel() is None
+        or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors)
+        or viewmats.requires_grad
+        or Ks.requires_grad
+    ):
         return project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
 
     # A set shared by every camera goes in as [1, N, k] (not copied C times).
     means, quats, scales = (x[:1] if is_shared_set(x) else x for x in (means, quats, scales))
     means2d, conics, depths, d2max, radii, valid = _Project.apply(
-        means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near))
+        means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near)
+    )
     return Projected(means2d, conics, depths, opacities, colors, d2max, radii, valid)
 
 
@@ -123,7 +167,9 @@ class _SplatComposite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, d2max, radii, valid, width, height):
         ext = load_kernel()
-        args = [t.detach().cpu().float().contiguous() for t in (means2d, conics, opacities, colors, depths, d2max, radii)]
+        args = [
+            t.detach().cpu().float().contiguous() for t in (means2d, conics, opacities, colors, depths, d2max, radii)
+        ]
         valid = valid.cpu().contiguous()
         ctx.device = means2d.device
         acc_rgb, alpha, acc_depth, T_final, last, offsets, ids = ext.forward(*args, valid, width, height, TILE)
@@ -140,21 +186,56 @@ class _SplatComposite(torch.autograd.Function):
         width, height = ctx.size
         C = args[4].shape[0]
 
-        g = ext.backward(*args, valid, width, height, TILE, offsets, ids, T_final, last,
-                         _grad_in(g_rgb, (C, height, width, 3)), _grad_in(g_alpha, (C, height, width)),
-                         _grad_in(g_depth, (C, height, width)))  # [C, N, 10]
+        g = ext.backward(
+            *args,
+            valid,
+            width,
+            height,
+            TILE,
+            offsets,
+            ids,
+            T_final,
+            last,
+            _grad_in(g_rgb, (C, height, width, 3)),
+            _grad_in(g_alpha, (C, height, width)),
+            _grad_in(g_depth, (C, height, width)),
+        )  # [C, N, 10]
         dt, dev = ctx.dtypes, ctx.device
-        return (g[..., 0:2].to(dev, dt[0]), g[..., 2:5].to(dev, dt[1]), g[..., 5].to(dev, dt[2]),
-                g[..., 6:9].to(dev, dt[3]), g[..., 9].to(dev, dt[4]), None, None, None, None, None)
+        return (
+            g[..., 0:2].to(dev, dt[0]),
+            g[..., 2:5].to(dev, dt[1]),
+            g[..., 5].to(dev, dt[2]),
+            g[..., 6:9].to(dev, dt[3]),
+            g[..., 9].to(dev, dt[4]),
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
 def rasterize_cpu_projected(proj: Projected, width: int, height: int):
     """Returns (acc_rgb [C, H, W, 3], alpha [C, H, W], acc_depth [C, H, W]); reference if no kernel."""
     if load_kernel() is None:
-        warnings.warn(f"t2bs splat: the C++ CPU kernel could not be built ({_error}); "
-                      "using the slow PyTorch reference rasterizer", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"t2bs splat: the C++ CPU kernel could not be built ({_error}); "
+            "using the slow PyTorch reference rasterizer",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return rasterize_reference_projected(proj, width, height)
-    out = _SplatComposite.apply(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths,
-                                proj.d2max, proj.radii, proj.valid, width, height)
+    out = _SplatComposite.apply(
+        proj.means2d,
+        proj.conics,
+        proj.opacities,
+        proj.colors,
+        proj.depths,
+        proj.d2max,
+        proj.radii,
+        proj.valid,
+        width,
+        height,
+    )
     dt = proj.means2d.dtype
     return tuple(o.to(dt) for o in out)

@@ -43,25 +43,45 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, widt
     if means.device.type != "cuda":
         raise UserError("backend 'gsplat' needs CUDA tensors; move the inputs to a GPU or use backend='cpu'")
     C = viewmats.shape[0]
-    kw = dict(width=width, height=height, near_plane=near, eps2d=0.3, render_mode="RGB+ED",
-              rasterize_mode="classic", packed=False)
+    kw = dict(
+        width=width,
+        height=height,
+        near_plane=near,
+        eps2d=0.3,
+        render_mode="RGB+ED",
+        rasterize_mode="classic",
+        packed=False,
+    )
     dt = means.dtype
     f = lambda x: x.float()  # noqa: E731  (gsplat kernels are float32)
     if all(_shared(x) for x in (means, quats, scales, opacities)):
         # One Gaussian set for every camera: one batched call; colours may still be per camera.
         cols = colors[0] if _shared(colors) else colors
-        render, alphas, _ = rasterization(f(means[0]), f(quats[0]), f(scales[0]), f(opacities[0]), f(cols),
-                                          f(viewmats), f(Ks), **kw)
+        render, alphas, _ = rasterization(
+            f(means[0]), f(quats[0]), f(scales[0]), f(opacities[0]), f(cols), f(viewmats), f(Ks), **kw
+        )
     elif _batch_dims_supported():
         # Per-camera sets (VCDGS deforms per (view, time)): each camera is a batch entry with its
         # own Gaussians, one call for all of them.
-        render, alphas, _ = rasterization(f(means), f(quats), f(scales), f(opacities), f(colors),
-                                          f(viewmats[:, None]), f(Ks[:, None]), **kw)
+        render, alphas, _ = rasterization(
+            f(means), f(quats), f(scales), f(opacities), f(colors), f(viewmats[:, None]), f(Ks[:, None]), **kw
+        )
         render, alphas = render[:, 0], alphas[:, 0]
     else:
         # gsplat < 1.5 takes one Gaussian set per call.
-        outs = [rasterization(f(means[c]), f(quats[c]), f(scales[c]), f(opacities[c]), f(colors[c]),
-                              f(viewmats[c:c + 1]), f(Ks[c:c + 1]), **kw) for c in range(C)]
+        outs = [
+            rasterization(
+                f(means[c]),
+                f(quats[c]),
+                f(scales[c]),
+                f(opacities[c]),
+                f(colors[c]),
+                f(viewmats[c : c + 1]),
+                f(Ks[c : c + 1]),
+                **kw,
+            )
+            for c in range(C)
+        ]
         render = torch.cat([o[0] for o in outs], 0)
         alphas = torch.cat([o[1] for o in outs], 0)
     render, alphas = render.to(dt), alphas.to(dt)  # [C, H, W, 4], [C, H, W, 1]

@@ -54,9 +54,15 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
     ]
     return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
 
@@ -123,8 +129,15 @@ def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, wid
         rx = torch.sqrt(dm * sa.detach().clamp_min(0)) + 1.0
         ry = torch.sqrt(dm * sc.detach().clamp_min(0)) + 1.0
         m2 = means2d.detach()
-        finite = torch.isfinite(m2).all(-1) & torch.isfinite(rx) & torch.isfinite(ry) & torch.isfinite(conics.detach()).all(-1)
-        overlaps = (m2[..., 0] + rx > 0) & (m2[..., 0] - rx < width) & (m2[..., 1] + ry > 0) & (m2[..., 1] - ry < height)
+        finite = (
+            torch.isfinite(m2).all(-1)
+            & torch.isfinite(rx)
+            & torch.isfinite(ry)
+            & torch.isfinite(conics.detach()).all(-1)
+        )
+        overlaps = (
+            (m2[..., 0] + rx > 0) & (m2[..., 0] - rx < width) & (m2[..., 1] + ry > 0) & (m2[..., 1] - ry < height)
+        )
         valid = in_front & ok_det & (o >= ALPHA_MIN) & finite & overlaps
         radii = torch.stack([rx, ry], -1)
         radii = torch.where(valid[..., None], radii, torch.zeros_like(radii))
@@ -198,11 +211,21 @@ def rasterize_reference_projected(proj: Projected, width: int, height: int):
             for x0 in range(0, width, TILE):
                 x1 = min(x0 + TILE, width)
                 ids = o[in_rows & (hi_x >= x0) & (lo_x <= x1)]
-                ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=dt) + 0.5,
-                                        torch.arange(x0, x1, device=dev, dtype=dt) + 0.5, indexing="ij")
+                ys, xs = torch.meshgrid(
+                    torch.arange(y0, y1, device=dev, dtype=dt) + 0.5,
+                    torch.arange(x0, x1, device=dev, dtype=dt) + 0.5,
+                    indexing="ij",
+                )
                 acc_rgb, alpha, acc_depth = composite(
-                    xs.reshape(-1, 1), ys.reshape(-1, 1), proj.means2d[ci][ids], proj.conics[ci][ids],
-                    proj.depths[ci][ids], proj.opacities[ci][ids], proj.colors[ci][ids], proj.d2max[ci][ids])
+                    xs.reshape(-1, 1),
+                    ys.reshape(-1, 1),
+                    proj.means2d[ci][ids],
+                    proj.conics[ci][ids],
+                    proj.depths[ci][ids],
+                    proj.opacities[ci][ids],
+                    proj.colors[ci][ids],
+                    proj.d2max[ci][ids],
+                )
                 h, w = y1 - y0, x1 - x0
                 cols.append((acc_rgb.reshape(h, w, 3), alpha.reshape(h, w), acc_depth.reshape(h, w)))
             rows.append(tuple(torch.cat([c[k] for c in cols], dim=1) for k in range(3)))

@@ -1,0 +1,23 @@
+"""CLI: `t2bs autorig MESH -o OUT.glb` (the code: t2bs.rig.stage)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from t2bs.rig import stage
+
+
+def autorig_command(
+    mesh_path: Path = typer.Argument(..., help="Head mesh (glb, gltf, vrm, obj, ply) without a face rig."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output .glb: the mesh with ARKit-named morph targets."),
+    landmarks: Optional[Path] = typer.Option(
+        None, "--landmarks", help="JSON with 20 vertex_ids (68-point order " "36-47, 60-67), optional named ids."
+    ),
+    facing: str = typer.Option("auto", help="Axis the face looks along in the file: auto, +z, -z, +x, -x."),
+    keep: bool = typer.Option(False, "--keep", help="Keep the mesh's own morph targets next to the new ones."),
+) -> None:
+    """Build a face rig on a static head mesh in seconds: jawOpen, eyeBlinkLeft, mouthSmileLeft, ... (ARKit names)."""
+    stage.run(out, stage.AutorigConfig(mesh_path=mesh_path, landmarks=landmarks, facing=facing, keep=keep))

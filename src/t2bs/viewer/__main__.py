@@ -1,3 +1,0 @@
-from t2bs.viewer.commands import main
-
-main()
