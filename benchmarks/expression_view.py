@@ -57,7 +57,8 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.project import Project, atomic_path
     from t2bs.recon.gaussians import camera_tensors, render
-    from t2bs.recon.vcdgs import load_trained_model, resize_stack
+    from t2bs.recon.images import resize_stack
+    from t2bs.recon.vcdgs import load_trained_model
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.grid import load_grid
 

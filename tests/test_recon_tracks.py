@@ -9,7 +9,7 @@ import torch
 from t2bs.geometry.mesh import Mesh
 from t2bs.recon.gaussians import camera_tensors
 from t2bs.recon.tracks import VertexTracks, compute_tracks, project_points, rest_visibility, track_loss
-from t2bs.recon.vcdgs import resize_stack
+from t2bs.recon.images import resize_stack
 from test_recon import sphere_mesh, splat_grid
 
 

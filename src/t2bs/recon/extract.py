@@ -96,7 +96,7 @@ def animated_mesh(mesh: Mesh, vertices: np.ndarray, times: np.ndarray) -> tuple[
 
 def preview_frames(mesh: Mesh, vertices: np.ndarray, grid, side_view: int, size: int = 256) -> np.ndarray:
     """[T, size, 4 * size, 3] uint8: input canonical | recon canonical | input side | recon side."""
-    from t2bs.recon.vcdgs import resize_stack
+    from t2bs.recon.images import resize_stack
     from t2bs.render.mesh_renderer import MeshRenderer
 
     cams = [grid.cameras[grid.canonical_view], grid.cameras[side_view]]

@@ -55,6 +55,7 @@ from t2bs.geometry.mesh import Mesh
 from t2bs.recon.config import VCDGSConfig
 from t2bs.recon.control_points import build_control_points
 from t2bs.recon.deform import VCDGSModel
+from t2bs.recon.images import resize_stack
 from t2bs.recon.lbs import matvec
 from t2bs.recon.gaussians import (
     StaticGaussians,
@@ -110,18 +111,6 @@ class ReconResult:
     seconds: float = 0.0  # wall time of the reconstruction
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
     hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
-
-
-def resize_stack(x: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
-    """[..., H, W, C] uint8/float -> float tensor [..., h, w, C] (area filter), size = (w, h)."""
-    t = torch.as_tensor(np.ascontiguousarray(x))
-    lead = t.shape[:-3]
-    t = t.reshape(-1, *t.shape[-3:]).permute(0, 3, 1, 2).float()
-    if t.shape[-2:] != (size[1], size[0]):
-        t = F.interpolate(t, size=(size[1], size[0]), mode="area")
-    if x.dtype == np.uint8:
-        t = t / 255.0
-    return t.permute(0, 2, 3, 1).reshape(*lead, size[1], size[0], -1).contiguous()
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
