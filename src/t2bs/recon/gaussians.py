@@ -128,39 +128,16 @@ def render(
     n = means.shape[-2]
     opac = torch.ones(n, dtype=means.dtype, device=means.device)
     bg = torch.tensor(background, dtype=means.dtype, device=means.device)
+    args = (means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height)
     try:
-        return rasterize_gaussians(
-            means,
-            to_wxyz(quats_xyzw),
-            scales,
-            opac,
-            colors,
-            viewmats,
-            ks,
-            width,
-            height,
-            background=bg,
-            backend=backend,
-        )
+        return rasterize_gaussians(*args, background=bg, backend=backend)
     except ImportError as exc:  # the fast kernel's module is not there (yet): same rules, slower
         if not _warned_backend:
             warnings.warn(
                 f"splat backend {backend!r} unavailable ({exc}); using the reference rasterizer", stacklevel=2
             )
             _warned_backend = True
-        return rasterize_gaussians(
-            means,
-            to_wxyz(quats_xyzw),
-            scales,
-            opac,
-            colors,
-            viewmats,
-            ks,
-            width,
-            height,
-            background=bg,
-            backend="reference",
-        )
+        return rasterize_gaussians(*args, background=bg, backend="reference")
 
 
 def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale, flatness: float = 0.25):

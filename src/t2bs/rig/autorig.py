@@ -30,64 +30,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from t2bs.errors import UserError
+from t2bs.face.arkit import ARKIT_NAMES as ARKIT_52
 from t2bs.geometry.mesh import Mesh, vertex_normals, weld_index, welded_components, welded_edges
 from t2bs.rig.face import FaceLandmarks, fit_sphere
 
-# Apple's ARKit blend shape locations (ARFaceAnchor.BlendShapeLocation), all 52.
-ARKIT_NAMES = [
-    "browDownLeft",
-    "browDownRight",
-    "browInnerUp",
-    "browOuterUpLeft",
-    "browOuterUpRight",
-    "cheekPuff",
-    "cheekSquintLeft",
-    "cheekSquintRight",
-    "eyeBlinkLeft",
-    "eyeBlinkRight",
-    "eyeLookDownLeft",
-    "eyeLookDownRight",
-    "eyeLookInLeft",
-    "eyeLookInRight",
-    "eyeLookOutLeft",
-    "eyeLookOutRight",
-    "eyeLookUpLeft",
-    "eyeLookUpRight",
-    "eyeSquintLeft",
-    "eyeSquintRight",
-    "eyeWideLeft",
-    "eyeWideRight",
-    "jawForward",
-    "jawLeft",
-    "jawOpen",
-    "jawRight",
-    "mouthClose",
-    "mouthDimpleLeft",
-    "mouthDimpleRight",
-    "mouthFrownLeft",
-    "mouthFrownRight",
-    "mouthFunnel",
-    "mouthLeft",
-    "mouthLowerDownLeft",
-    "mouthLowerDownRight",
-    "mouthPressLeft",
-    "mouthPressRight",
-    "mouthPucker",
-    "mouthRight",
-    "mouthRollLower",
-    "mouthRollUpper",
-    "mouthShrugLower",
-    "mouthShrugUpper",
-    "mouthSmileLeft",
-    "mouthSmileRight",
-    "mouthStretchLeft",
-    "mouthStretchRight",
-    "mouthUpperUpLeft",
-    "mouthUpperUpRight",
-    "noseSneerLeft",
-    "noseSneerRight",
-    "tongueOut",
-]
+# Apple's 52 ARKit blend shape locations, alphabetical: the order the rig's morph targets are written in.
+ARKIT_NAMES = sorted(ARKIT_52)
 NOT_MODELLED = "lip roll / press / close need the lips' volume, which the auto rig does not model"
 # Positions in the 20 landmarks (68-point order 36-47, 60-67).
 EYES = {"right": slice(0, 6), "left": slice(6, 12)}  # each: corner, upper, upper, corner, lower, lower
