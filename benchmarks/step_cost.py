@@ -76,11 +76,9 @@ def main() -> None:
     }
     grids = {}
     for pname in a.presets.split(","):
-        base = preset(pname)
         cfg = preset(pname, **over)
-        size = (
-            base.data.resolution if hasattr(base, "data") else base.resolution
-        )  # --src: a checkout before the config tree
+        # the grid at the training resolution, --set resolution=... included (--src: a checkout before the tree)
+        size = cfg.data.resolution if hasattr(cfg, "data") else cfg.resolution
         if size not in grids:
             grids[size] = make_grid(mesh, a.prompt, config=GridConfig(frames=16, size=size))
         data = prepare_data(grids[size], cfg)
