@@ -1,6 +1,6 @@
 """The lid scene (issue 37): how much of a lid sliding over a dark eye VCDGS recovers, with any settings.
 
-    python3 benchmarks/lid_scene.py [--set KEY=VALUE ...] [--self-targets]
+    python3 benchmarks/lid_scene.py [--set KEY=VALUE ...] [--self-targets] [--size 64]
 
 A still sphere whose lid (a separate thin cap) turns 14 deg down over a dark eye (`t2bs.eval.scenes.lid_scene`, 64 px,
 6 frames, 5 views); VCDGS with the photometric loss alone (`track_weight=0`, 400 steps, 80 of them warm-up, no time
@@ -68,6 +68,7 @@ def main(
     self_targets_on: bool = typer.Option(
         False, "--self-targets", help="Train on the model's own renders of the truth."
     ),
+    size: int = typer.Option(64, help="Grid and training resolution, px."),
 ) -> None:
     """Reconstruct the lid scene and print how much of the lid's motion came back (one JSON object)."""
     from t2bs.eval.scenes import lid_scene
@@ -77,8 +78,8 @@ def main(
     from t2bs.recon.vcdgs import build_model, prepare_data, train
 
     options = parse_options(set_options or [])
-    cfg = preset("quick", **{**LID_SETTINGS, **options})
-    mesh, grid = lid_scene(frames=6, size=64)
+    cfg = preset("quick", **{**LID_SETTINGS, "resolution": size, **options})
+    mesh, grid = lid_scene(frames=6, size=size)
     import torch
 
     t0 = time.time()
@@ -100,6 +101,7 @@ def main(
             {
                 "options": set_options or [],
                 "self_targets": self_targets_on,
+                "size": size,
                 **{k: round(float(m[k]), 4) for k in ("recovered", "cosine", "expr_ratio")},
                 "lid_gain": round(gain, 4),
                 "seconds": round(time.time() - t0, 1),
