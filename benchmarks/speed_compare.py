@@ -84,7 +84,7 @@ def main() -> None:
         "--case",
         action="append",
         default=[],
-        help="ASSET|PROMPT (repeatable; default: facecap smiling, " "facecap mouth wide, the demo fox mouth wide)",
+        help="ASSET|PROMPT (repeatable; default: facecap smiling, facecap mouth wide, the demo fox mouth wide)",
     )
     ap.add_argument("--variant", action="append", default=[], help="NAME:KEY=VALUE[,KEY=VALUE] run of this checkout")
     ap.add_argument("--json", default="")

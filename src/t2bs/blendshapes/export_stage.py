@@ -74,7 +74,7 @@ def _run(project: Project, config: ExportConfig) -> ExportResult:
     character = project.load_character()
     if character.num_vertices != model.num_vertices:
         raise UserError(
-            f"blendshape model has {model.num_vertices} vertices but the character has " f"{character.num_vertices}"
+            f"blendshape model has {model.num_vertices} vertices but the character has {character.num_vertices}"
         )
     arkit = load_arkit_shapes(project.path("blendshapes", "arkit.json"), model.num_components)
     ext = {"glb": ".glb", "usd": ".usdc", "vrm": ".vrm"}[fmt]

@@ -90,7 +90,7 @@ def load_captures(root: Path, source: str) -> tuple[dict[str, np.ndarray], dict[
             )
         if not recon:
             raise UserError(
-                f"{root}: no finished reconstructions in recon/ (run `t2bs reconstruct {root}` " f"or use --source gt)"
+                f"{root}: no finished reconstructions in recon/ (run `t2bs reconstruct {root}` or use --source gt)"
             )
         for p in recon:
             captures[p.parent.name] = read_array(p, "reconstructed vertices", ndim=3, trailing=(3,)).astype(np.float32)

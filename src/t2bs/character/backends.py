@@ -258,7 +258,7 @@ def run_argv(argv: list[str], timeout: float | None, env: dict | None = None) ->
             os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate()
         raise UserError(
-            f"--command did not finish within {timeout:g} s (raise it with --command-timeout): " f"{shlex.join(argv)}"
+            f"--command did not finish within {timeout:g} s (raise it with --command-timeout): {shlex.join(argv)}"
         ) from None
     except BaseException:  # Ctrl-C: do not leave the generator running
         with contextlib.suppress(ProcessLookupError):

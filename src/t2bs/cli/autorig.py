@@ -14,7 +14,7 @@ def autorig_command(
     mesh_path: Path = typer.Argument(..., help="Head mesh (glb, gltf, vrm, obj, ply) without a face rig."),
     out: Path = typer.Option(..., "-o", "--out", help="Output .glb: the mesh with ARKit-named morph targets."),
     landmarks: Optional[Path] = typer.Option(
-        None, "--landmarks", help="JSON with 20 vertex_ids (68-point order " "36-47, 60-67), optional named ids."
+        None, "--landmarks", help="JSON with 20 vertex_ids (68-point order 36-47, 60-67), optional named ids."
     ),
     facing: str = typer.Option("auto", help="Axis the face looks along in the file: auto, +z, -z, +x, -x."),
     keep: bool = typer.Option(False, "--keep", help="Keep the mesh's own morph targets next to the new ones."),

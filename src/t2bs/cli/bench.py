@@ -43,7 +43,7 @@ def bench_vcdgs_command(
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
     track_weight: float = typer.Option(
         None,
-        help="Weight of the optical-flow vertex-track term (0 = the paper's loss " "alone; default: the preset's).",
+        help="Weight of the optical-flow vertex-track term (0 = the paper's loss alone; default: the preset's).",
     ),
     time_budget: float = typer.Option(
         None,
@@ -54,20 +54,20 @@ def bench_vcdgs_command(
     ),
     seed: int = typer.Option(
         None,
-        help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids " "do not change with it.",
+        help="VCDGS seed (sampling and initialisation; default: the preset's, 0). The grids do not change with it.",
     ),
     hidden_pick: bool = typer.Option(
         None,
         "--hidden-pick/--no-hidden-pick",
-        help="Hidden parts' motion picked by " "render (recon/hidden_parts.py; default: the preset's, on).",
+        help="Hidden parts' motion picked by render (recon/hidden_parts.py; default: the preset's, on).",
     ),
     json_file: Path = typer.Option(
         None,
         "--json",
-        help="Also write the JSON here (after every case); a re-run with " "the same file and settings resumes.",
+        help="Also write the JSON here (after every case); a re-run with the same file and settings resumes.",
     ),
     fresh: bool = typer.Option(
-        False, "--fresh", help="Recompute every row even if --json holds them from the same " "settings."
+        False, "--fresh", help="Recompute every row even if --json holds them from the same settings."
     ),
     set_options: list[str] = typer.Option(
         None,
@@ -113,7 +113,7 @@ def bench_vcdgs_command(
 
 def bench_blendshapes_command(
     asset: str = typer.Option(
-        ..., "--asset", help="Mesh with morph targets (.glb), a project folder, or " "procedural:PROMPT."
+        ..., "--asset", help="Mesh with morph targets (.glb), a project folder, or procedural:PROMPT."
     ),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the JSON here."),
     source: str = typer.Option("gt", "--source", help="gt: ground-truth captures; vcdgs: recon/ of a project folder."),
@@ -122,7 +122,7 @@ def bench_blendshapes_command(
     prompts: int = typer.Option(20, "--prompts", help="Prompts animated for a mesh asset (paper: 20)."),
     frames: int = typer.Option(24, "--frames", help="Frames per capture for a mesh asset."),
     rgb_steps: int = typer.Option(
-        10, "--rgb-steps", help="L-BFGS iterations of the 0.1 L_rgb refinement (0 = geometry " "only)."
+        10, "--rgb-steps", help="L-BFGS iterations of the 0.1 L_rgb refinement (0 = geometry only)."
     ),
     image_size: int = typer.Option(256, "--image-size", help="Side of the frontal renders for pixel L2."),
     facing: str = typer.Option("+z", "--facing", help="Direction a mesh asset faces (+z, -z, +x, -x)."),

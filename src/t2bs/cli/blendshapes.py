@@ -17,11 +17,11 @@ def blendshapes_command(
         100, "--components", "-k", help="Most shapes to keep (also capped by the data's rank)."
     ),
     source: str = typer.Option(
-        "auto", "--source", help="vcdgs: recon/*/vertices.npy; gt: videos/*/gt_vertices.npy; " "auto: vcdgs if present."
+        "auto", "--source", help="vcdgs: recon/*/vertices.npy; gt: videos/*/gt_vertices.npy; auto: vcdgs if present."
     ),
     semantic: bool = typer.Option(True, "--semantic/--no-semantic", help="Add one named shape per expression prompt."),
     animation: Optional[str] = typer.Option(
-        None, "--animation", help="Video id replayed by model.glb " "(default: the capture that moves most)."
+        None, "--animation", help="Video id replayed by model.glb (default: the capture that moves most)."
     ),
     usd: bool = typer.Option(
         False, "--usd", help="Also write model.usdc (binary USD, UsdSkel blend shapes; needs usd-core)."

@@ -15,11 +15,11 @@ def character_command(
     out: Path = typer.Option(..., "-o", "--out", help="Project folder to create or update."),
     backend: str = typer.Option(
         "procedural",
-        help="procedural (offline), diffusers (Shap-E: openai/shap-e weights, " "MIT licence), command, file.",
+        help="procedural (offline), diffusers (Shap-E: openai/shap-e weights, MIT licence), command, file.",
     ),
     seed: int = typer.Option(0, help="Random seed: same prompt + seed -> same character."),
     checkpoint: Path = typer.Option(
-        None, help="diffusers: local Shap-E folder " "(default ~/.cache/t2bs/checkpoints/shap-e)."
+        None, help="diffusers: local Shap-E folder (default ~/.cache/t2bs/checkpoints/shap-e)."
     ),
     command: str = typer.Option(
         None,

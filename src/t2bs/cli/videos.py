@@ -14,7 +14,7 @@ from t2bs.video.stage import VideosConfig, run
 def videos_command(
     project_dir: Path = typer.Argument(..., help="Project folder (with character/mesh.glb)."),
     prompts: str = typer.Option(
-        "all", help="all, a comma list of expressions, or a prompt-list file " "(.txt one per line, .json)."
+        "all", help="all, a comma list of expressions, or a prompt-list file (.txt one per line, .json)."
     ),
     samples: int = typer.Option(SAMPLES_PER_PROMPT, help="Videos per prompt (paper: 3)."),
     defects: str = typer.Option("mild", help="Simulated 4D-generator defects on the side views: clean, mild, paper."),

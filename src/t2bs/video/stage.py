@@ -272,7 +272,7 @@ def _cogvideox(
     front_path = project.path("renders", "front.png")
     if not front_path.exists():
         raise UserError(
-            f"{front_path} missing: run `t2bs render` first " f"(the video model starts from the frontal render)"
+            f"{front_path} missing: run `t2bs render` first (the video model starts from the frontal render)"
         )
     front = read_rgb(front_path)
     vcfg = CogVideoXConfig(frames=max(cfg.frames, 9), steps=steps, fps=cfg.fps)
@@ -332,7 +332,7 @@ def _sv4d2(
 
     if checkpoint is None:
         raise UserError(
-            "--backend sv4d2 needs --checkpoint DIR " "(a folder holding sv4d2.safetensors from stabilityai/sv4d2.0)"
+            "--backend sv4d2 needs --checkpoint DIR (a folder holding sv4d2.safetensors from stabilityai/sv4d2.0)"
         )
     ckpt_file = check_checkpoint(checkpoint)
     # The static mesh's fixed-time orbit (frame 0 of every view) and its cameras, from `t2bs render`.
