@@ -143,7 +143,7 @@ class Project:
 
         if not self.mesh_path.exists():
             raise UserError(
-                f"{self.root}: no character yet (run `t2bs character` or `t2bs render MESH -o {self.root}`)"
+                f"{self.root}: no character/mesh.glb (run `t2bs render MESH -o {self.root}` or `t2bs character`)"
             )
         return load_mesh(self.mesh_path)
 

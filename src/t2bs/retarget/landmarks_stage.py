@@ -26,15 +26,6 @@ class LandmarksResult:
     landmarks: Landmarks  # the 20 (vertex_ids [20], points2d [20, 2], positions [20, 3], eyeballs, regions)
 
 
-def load_character(project: Project):
-    """The project's character mesh; UserError when the project has none."""
-    if not project.mesh_path.exists():
-        raise UserError(f"{project.root}: no character/mesh.glb (run `t2bs render MESH -o {project.root}` first)")
-    from t2bs.geometry.io import load_mesh
-
-    return load_mesh(project.mesh_path)
-
-
 def load_model(project: Project, required: bool):
     """blendshapes/model.npz, or None when absent (UserError when ``required``)."""
     path = project.path("blendshapes", "model.npz")
@@ -67,7 +58,7 @@ def run(project: "Project | str | os.PathLike", config: LandmarksConfig = Landma
     """
     project = project if isinstance(project, Project) else Project(project)
     with project_lock(project.root, "landmarks"):
-        mesh = load_character(project)
+        mesh = project.load_character()
         model = load_model(project, required=False)
         lm = find_project_landmarks(project, mesh, model, config.backend, config.override, config.show)
         path = project.path("landmarks", "landmarks.json")

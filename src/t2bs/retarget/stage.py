@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from t2bs.errors import UserError
 from t2bs.project import OutputSet, Project, project_lock, read_json, write_json
-from t2bs.retarget.landmarks_stage import load_character, load_model
+from t2bs.retarget.landmarks_stage import load_model
 
 
 @dataclass
@@ -118,7 +118,7 @@ def run(project: "Project | str | os.PathLike", config: RetargetConfig = Retarge
 
 def _rig(project: Project):
     """(character mesh, blendshape model) of one vertex count."""
-    mesh = load_character(project)
+    mesh = project.load_character()
     model = load_model(project, required=True)
     if model.num_vertices != mesh.num_vertices:
         raise UserError(f"blendshape model has {model.num_vertices} vertices but the character has {mesh.num_vertices}")
