@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from t2bs.errors import UserError
-from t2bs.recon.config import parse_options, preset
+from t2bs.recon.config import iteration_overrides, parse_options, preset
 from t2bs.shared_assets import shared_assets_dir
 
 SHARED_ASSETS = shared_assets_dir()
@@ -89,10 +89,7 @@ def seen_vertices(mesh, frames: np.ndarray, cameras, renderer) -> np.ndarray:
 
 def case_config_overrides(preset_name: str, iterations: int, options: dict | None) -> dict:
     """VCDGS overrides shared by every method of a benchmark run (the method itself excluded)."""
-    over = dict(options or {})
-    if iterations:
-        over.update(iterations=iterations, global_iters=min(preset(preset_name).optim.global_iters, iterations // 5))
-    return over
+    return {**(options or {}), **iteration_overrides(preset_name, iterations)}
 
 
 def run_case(

@@ -303,6 +303,14 @@ def preset(name: str, **overrides) -> VCDGSConfig:
     return PRESETS[name].replace(**overrides).validate()
 
 
+def iteration_overrides(preset_name: str, iterations: int) -> dict:
+    """The fields a step count other than the preset's sets (the CLIs' ``--iterations``; 0 = the preset's): the
+    steps, and the warm-up shortened to min(the preset's, a fifth of them). UserError for an unknown preset."""
+    if not iterations:
+        return {}
+    return {"iterations": iterations, "global_iters": min(preset(preset_name).optim.global_iters, iterations // 5)}
+
+
 _TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 
@@ -346,4 +354,4 @@ def parse_options(items: typing.Iterable[str]) -> dict:
     return out
 
 
-__all__ = ["VCDGSConfig", "PRESETS", "METHODS", "SECTIONS", "preset", "parse_options"]
+__all__ = ["VCDGSConfig", "PRESETS", "METHODS", "SECTIONS", "preset", "parse_options", "iteration_overrides"]

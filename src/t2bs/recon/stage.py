@@ -17,7 +17,7 @@ import numpy as np
 from t2bs.distributed import Job, run_jobs
 from t2bs.errors import UserError
 from t2bs.project import Project, content_key, project_lock
-from t2bs.recon.config import PRESETS, VCDGSConfig, preset
+from t2bs.recon.config import VCDGSConfig, iteration_overrides, preset
 
 
 @dataclass
@@ -50,10 +50,7 @@ class ReconstructResult:
 def vcdgs_config(config: ReconstructConfig) -> VCDGSConfig:
     """The VCDGS settings a ReconstructConfig asks for: the preset, the named fields, then ``options``."""
     overrides: dict = {"method": config.method, "device": config.device, "seed": config.seed}
-    if config.iterations:
-        overrides["iterations"] = config.iterations
-        warm = PRESETS[config.preset_name].optim.global_iters if config.preset_name in PRESETS else 0
-        overrides["global_iters"] = min(warm, config.iterations // 5)
+    overrides.update(iteration_overrides(config.preset_name, config.iterations))
     if config.control_points:
         overrides["num_control_points"] = config.control_points
     if config.lpips_weights:
