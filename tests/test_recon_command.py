@@ -97,3 +97,15 @@ def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
         text=True,
     )
     assert r.returncode == 2 and r.stderr.strip() == "error: VCDGS option knn='four': not a valid int", r.stderr
+
+
+def test_a_preset_copy_shares_no_section_with_the_preset():
+    """The config is a tree of mutable dataclasses: changing a copy's field must not change the preset."""
+    from t2bs.recon.config import PRESETS, SECTIONS, VCDGSConfig
+
+    cfg = preset("quick", knn=4)
+    cfg.optim.iterations = 5
+    assert PRESETS["quick"].optim.iterations == 800 and preset("quick").optim.iterations == 800
+    assert all(getattr(cfg, s) is not getattr(PRESETS["quick"], s) for s in SECTIONS)
+    back = VCDGSConfig.from_dict(cfg.to_dict())
+    assert back == cfg and back.data.holdout_views == () and back.control_points.knn == 4

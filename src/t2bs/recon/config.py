@@ -169,7 +169,8 @@ class VCDGSConfig:
         for name, value in fields.items():
             if name != "method":
                 by_section.setdefault(FIELD_SECTION[name], {})[name] = value
-        sections = {sec: replace(getattr(self, sec), **vals) for sec, vals in by_section.items()}
+        # every section copied, changed or not: a copy never shares a mutable section with its source (a preset)
+        sections = {sec: replace(getattr(self, sec), **by_section.get(sec, {})) for sec in SECTIONS}
         return replace(self, **sections, **({"method": fields["method"]} if "method" in fields else {}))
 
     def flat(self) -> dict:
