@@ -25,15 +25,15 @@ def _boundary(faces: np.ndarray) -> np.ndarray:
     return np.unique(u[c == 1])
 
 
-def synthetic_head(collar: bool = False):
+def synthetic_head(collar: bool = False, slit: bool = True):
     """A sphere head (radius 0.5, facing +Z) with two eye openings, eyeballs behind them, a slit mouth
-    (the lip seam) and an upper and a lower row of teeth (boxes behind the lips).
+    (the lip seam; ``slit=False``: a sealed mouth) and an upper and a lower row of teeth (boxes behind the lips).
     Returns (mesh, landmark ids [20], parts {name: vertex ids}, eyeball centres {side: [3]})."""
     import trimesh
 
     head = trimesh.creation.uv_sphere(radius=0.5, count=[64, 64])
     c = head.triangles_center
-    keep = ~((np.abs(c[:, 0]) < MOUTH_HALF) & (np.abs(c[:, 1] - MOUTH_Y) < 0.012) & (c[:, 2] > 0))
+    keep = ~((np.abs(c[:, 0]) < MOUTH_HALF) & (np.abs(c[:, 1] - MOUTH_Y) < 0.012) & (c[:, 2] > 0) & slit)
     for sx in (1, -1):
         keep &= ~((((c[:, 0] - sx * EYE_X) / EYE_A) ** 2 + ((c[:, 1] - EYE_Y) / EYE_B) ** 2 < 1) & (c[:, 2] > 0))
     head.update_faces(keep)
@@ -73,7 +73,8 @@ def synthetic_head(collar: bool = False):
     for a in MOUTH_ANGLES:
         r = np.radians(a)
         target = np.array([MOUTH_HALF * np.cos(r), MOUTH_Y + 0.01 * np.sin(r)])
-        cand = rim[np.abs(v[rim, 1] - MOUTH_Y) < 0.05]
+        pool = rim if slit else ids["head"]
+        cand = pool[np.abs(v[pool, 1] - MOUTH_Y) < 0.05]
         if 0 < a < 180:
             cand = cand[v[cand, 1] > MOUTH_Y]
         elif a < 0:
@@ -425,3 +426,51 @@ def test_named_jaw_hinge_and_chin_are_used(head):
     chin = lm[18]
     r0, r1 = np.linalg.norm((v[chin] - hinge)[1:]), np.linalg.norm((v[chin] + d[chin] - hinge)[1:])
     assert abs(r1 - r0) < 1e-4 * r0  # the lower lip turns about the user's hinge
+
+
+def _front_view(mesh):
+    from t2bs.geometry.camera import frontal_camera
+    from t2bs.render.mesh_renderer import MeshRenderer
+
+    cam = frontal_camera(256)
+    r = MeshRenderer()
+    try:
+        rendered = r.render(mesh, cam, shading="lambert")
+        vis = r.vertex_visibility(mesh, cam)
+    finally:
+        r.release()
+    uv, _ = cam.project(mesh.vertices.astype(np.float64))
+    return rendered, vis, uv
+
+
+def test_lip_seam_moves_a_misplaced_mouth_onto_the_mesh_opening():
+    """A detector that puts the mouth 40 % of the way up to the eyes and half as wide (what MediaPipe
+    does on the turtle): the seam finder puts the 8 inner-lip points on the slit, corner to corner."""
+    from t2bs.rig.seam import find_lip_seam
+
+    mesh, lm, parts, _ = synthetic_head()
+    rendered, vis, uv = _front_view(mesh)
+    vis &= np.isin(np.arange(mesh.num_vertices), parts["head"])  # the skin part, as the MediaPipe lift does
+    eyes_px, mouth_px = uv[lm[:12]], uv[lm[12:]].copy()
+    centre = mouth_px.mean(0)
+    mouth_px = centre + 0.5 * (mouth_px - centre) - [0, 0.4 * (centre[1] - eyes_px[:, 1].mean())]
+    seam = find_lip_seam(mesh.vertices, mesh.faces, uv, rendered, vis, eyes_px, mouth_px)
+    assert seam is not None
+    p = mesh.vertices[seam.ids].astype(np.float64)
+    assert np.abs(p[:, 1] - MOUTH_Y).max() < 0.05  # on the mouth line, within two of the sphere's rings (0.025 apart)
+    assert p[4, 0] > MOUTH_HALF - 0.04 and p[0, 0] < -(MOUTH_HALF - 0.04)  # 64 on the left (+X), 60 right
+    assert (p[[1, 2, 3], 1] > MOUTH_Y).all() and (p[[5, 6, 7], 1] < MOUTH_Y).all()  # upper lip, lower lip
+    assert p[1, 0] < p[2, 0] < p[3, 0] and p[7, 0] < p[6, 0] < p[5, 0]  # 61-63 right to left, 65-67 back
+    assert np.all(np.isin(seam.ids, parts["head"]))  # on the skin, not on the teeth seen through the slit
+
+
+def test_sealed_mouth_has_no_lip_seam():
+    from t2bs.rig.seam import find_lip_seam
+
+    slit, lm, _, _ = synthetic_head()
+    _, _, uv_slit = _front_view(slit)
+    mesh, _, parts, _ = synthetic_head(slit=False)
+    rendered, vis, uv = _front_view(mesh)
+    vis &= np.isin(np.arange(mesh.num_vertices), parts["head"])
+    eyes_px, mouth_px = uv_slit[lm[:12]], uv_slit[lm[12:]]  # where the slit head's points are
+    assert find_lip_seam(mesh.vertices, mesh.faces, uv, rendered, vis, eyes_px, mouth_px) is None

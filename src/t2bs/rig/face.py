@@ -29,6 +29,7 @@ import numpy as np
 
 from t2bs.errors import UserError
 from t2bs.geometry.mesh import Mesh, welded_components
+from t2bs.rig.seam import find_lip_seam
 
 # Optional named vertices a landmarks file may add (the 20 are enough; these refine the rig).
 NAMED_POINTS = (
@@ -168,15 +169,16 @@ def _lift(points2d: np.ndarray, uv: np.ndarray, candidates: np.ndarray, side: np
 
 
 def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> tuple | str:
-    """MediaPipe face mesh on the frontal render -> (ids [20], named ids, the 20 points [20, 2] in pixels);
-    a reason string when it finds nothing."""
+    """MediaPipe face mesh on the frontal render -> (ids [20], named ids, the 20 points [20, 2] in pixels,
+    whether the mouth points came from the mesh's lip seam); a reason string when it finds nothing."""
     from t2bs.geometry.camera import frontal_camera
     from t2bs.face.face_tracking import MEDIAPIPE_20, mediapipe_available, run_face_mesh
 
     if not mediapipe_available():
         return "MediaPipe is not installed (scripts/setup.sh)"
     cam = frontal_camera(size)
-    img = (np.clip(renderer.render(mesh, cam, shading="lambert").rgb, 0, 1) * 255).astype(np.uint8)
+    rendered = renderer.render(mesh, cam, shading="lambert")
+    img = (np.clip(rendered.rgb, 0, 1) * 255).astype(np.uint8)
     lm, found = run_face_mesh(img[None], static=True)
     if not found[0]:
         return "MediaPipe found no face on the frontal render"
@@ -204,7 +206,18 @@ def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], s
             ids[lo] = _lift(pts[[lo]], uv, below, np.array([-1]))[0]
     names = list(MEDIAPIPE_NAMED)
     named_ids = _lift(lm[0, [MEDIAPIPE_NAMED[n] for n in names], :2], uv, vis, np.zeros(len(names), int))
-    return ids, {n: int(i) for n, i in zip(names, named_ids)}, pts
+    named = {n: int(i) for n, i in zip(names, named_ids)}
+    # The mesh's own lip seam beats the detector's guess of the mouth (a cartoon's mouth line is not
+    # where a human's would be); a sealed mouth keeps the detector's points.
+    seam = find_lip_seam(mesh.vertices, mesh.faces, uv, rendered, vis, pts[:12], pts[12:])
+    if seam is not None:
+        ids[12:] = seam.ids
+        pts = np.concatenate([pts[:12], uv[seam.ids]])
+        # The detector's chin came with its mouth: it must lie well below the seam to be a chin.
+        em = 0.5 * (pts[:6, 1].mean() + pts[6:12, 1].mean())
+        if uv[named["chin"], 1] < uv[seam.ids[[5, 6, 7]], 1].max() + 0.25 * (pts[12:, 1].mean() - em):
+            del named["chin"]
+    return ids, named, pts, seam is not None
 
 
 def eye_parts_at(mesh: Mesh, renderer, points2d: np.ndarray, size: int = 512) -> dict[str, np.ndarray]:
@@ -284,13 +297,13 @@ def find_face(
             if isinstance(got, str):
                 reasons.append(got)
             else:
-                ids, source = got[0], "mediapipe"
+                ids, source = got[0], "mediapipe + lip seam" if got[3] else "mediapipe"
                 # Separate eye parts pin the eyes down geometrically; a detector trained on human
                 # photos only guesses them on a cartoon (it keeps the mouth and brows).
                 parts = eyeballs or eye_parts_at(mesh, renderer, got[2])
                 eyes = eyes_from_parts(mesh, renderer, parts) if parts else None
                 if eyes is not None:
-                    ids, source = np.concatenate([eyes, ids[12:]]), "mediapipe + eye parts"
+                    ids, source = np.concatenate([eyes, ids[12:]]), source + " + eye parts"
                 return FaceLandmarks(ids, source, got[1], eyeballs)
         else:
             reasons.append("MediaPipe not tried")
