@@ -33,7 +33,7 @@ def self_targets(model, data, gt_vertices) -> None:
     """Overwrite ``data``'s images (and masks) with the model's static Gaussians rendered at ``gt_vertices`` [T, N, 3]."""
     import torch
 
-    from t2bs.recon.gaussians import camera_tensors, render, with_faces
+    from t2bs.recon.gaussians import camera_tensors, render
 
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -41,20 +41,12 @@ def self_targets(model, data, gt_vertices) -> None:
     with torch.no_grad():
         for t in range(data.frames):
             x = torch.as_tensor(gt_vertices[t])[None].expand(v, -1, -1)
-            splats = (
+            splats = model.splats_at(
                 x,
                 model.quats[None].expand(v, -1, -1),
                 model.log_scales.exp()[None].expand(v, -1, -1),
                 model.colors[None].expand(v, -1, -1),
             )
-            if model.faces is not None:
-                splats = with_faces(
-                    *splats,
-                    model.faces,
-                    model.face_colors[None].expand(v, -1, -1),
-                    model.face_log_scale,
-                    model.flatness,
-                )
             out = render(*splats, vm, ks, w, h)
             data.images[:, t] = out["rgb"]
             if data.masks is not None:

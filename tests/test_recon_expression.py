@@ -44,20 +44,20 @@ def test_lid_scene_moves_only_the_lid():
 
 @pytest.mark.slow
 def test_photometric_loss_alone_moves_the_lid_the_right_way(lid_reconstruction):
-    """What the method does today (issue 37, measured): the lid moves the right way but stops at ~0.6 of its
-    motion (0.44 of the non-rigid motion with the head's drift taken out), with 400 or 800 steps alike."""
+    """What the method does today (issue 37, measured): the lid moves the right way but stops at 0.74 of its
+    motion (0.51 of the non-rigid motion with the head's drift taken out; before the splat offsets 0.59 / 0.43)."""
     mesh, grid, _, res = lid_reconstruction
     m = expression_metrics(res.vertices, grid.gt_vertices, mesh.vertices)
-    assert m["cosine"] >= 0.9 and m["recovered"] >= 0.3 and m["expr_ratio"] <= 0.75, m
+    assert m["cosine"] >= 0.9 and m["recovered"] >= 0.45 and m["expr_ratio"] <= 0.6, m
     lid = mesh.part_mask("eyelid_left")
     true = grid.gt_vertices[:, lid] - mesh.vertices[lid]
     moved = res.vertices[:, lid] - mesh.vertices[lid]
-    assert float((true * moved).sum() / (true**2).sum()) >= 0.45  # least-squares gain of the lid's motion
+    assert float((true * moved).sum() / (true**2).sum()) >= 0.65  # least-squares gain of the lid's motion
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(
-    strict=True, reason="issue 37: the photometric loss alone recovers ~0.44 of the lid's motion, not 0.9"
+    strict=True, reason="issue 37: the photometric loss alone recovers ~0.51 of the lid's motion, not 0.9"
 )
 def test_photometric_loss_alone_recovers_the_lid(lid_reconstruction):
     mesh, grid, _, res = lid_reconstruction

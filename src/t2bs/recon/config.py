@@ -35,6 +35,7 @@ class StaticFitConfig:
     face_gaussians: bool = True  # also one Gaussian per triangle, rebuilt from its deformed corners (mouths opening)
     max_face_gaussians: int = 10000  # face Gaussians only on this many of the largest triangles (0 = every triangle)
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
+    splat_offsets: bool = True  # the fit may slide each vertex Gaussian along the surface, off its vertex (part edges)
 
 
 @dataclass

@@ -194,6 +194,8 @@ class VCDGSModel(nn.Module):
         faces=None,
         face_colors=None,
         face_log_scale=None,
+        ring=None,
+        ring_weights=None,
     ):
         super().__init__()
         f32 = torch.float32
@@ -208,6 +210,12 @@ class VCDGSModel(nn.Module):
         self.flatness = cfg.static_fit.flatness
         self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
         self.register_buffer("quats", torch.as_tensor(quats, dtype=f32))  # [N, 4] XYZW
+        # Each vertex Gaussian's shift off its vertex (gaussians.fit_static_gaussians) as a fixed combination of its
+        # edges: it follows the surface and nothing but the vertices moves it; ``means`` (the mesh) stays put.
+        self.register_buffer("splat_ring", None if ring is None else torch.as_tensor(ring, dtype=torch.int64))  # [N, K]
+        self.register_buffer(
+            "splat_ring_weights", None if ring_weights is None else torch.as_tensor(ring_weights, dtype=f32)
+        )  # [N, K]
         self.register_buffer("log_scales", torch.as_tensor(log_scales, dtype=f32))  # [N, 3]
         self.register_buffer("colors", torch.as_tensor(colors, dtype=f32))  # [N, 3]
         self.register_buffer("cp", torch.as_tensor(cp_positions, dtype=f32))  # [K, 3]
@@ -251,6 +259,28 @@ class VCDGSModel(nn.Module):
         )
         self.register_buffer("pe_means", fourier(self.means, cfg.model.refine_pos_freqs), persistent=False)
         self.radius = float(self.means.norm(dim=-1).mean())  # mean distance from the origin: rotation -> motion
+
+    def splats_at(self, x, q, scales, colors, face_colors=None) -> tuple:
+        """The splats of vertices ``x`` [B, N, 3] with quats ``q`` [B, N, 4], ``scales``, ``colors`` [B, N, 3]: the
+        vertex Gaussians moved by their offsets (spanned by the deformed edges), then the face Gaussians spanning
+        those centres (``face_colors`` [B, F, 3], default the static ones)."""
+        centres = x
+        if self.splat_ring is not None:
+            edges = x[:, self.splat_ring] - x[:, :, None]  # [B, N, K, 3]
+            centres = x + (edges * self.splat_ring_weights[None, :, :, None]).sum(2)
+        if self.faces is None:
+            return centres, q, scales, colors
+        from t2bs.recon.gaussians import face_gaussians
+
+        if face_colors is None:
+            face_colors = self.face_colors[None].expand(len(x), -1, -1)
+        fm, fq, fs = face_gaussians(centres, self.faces, self.face_log_scale, self.flatness)
+        return (
+            torch.cat([centres, fm], 1),
+            torch.cat([q, fq], 1),
+            torch.cat([scales, fs], 1),
+            torch.cat([colors, face_colors], 1),
+        )
 
     # -- encodings of the discrete view / time indices --
     def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:
@@ -304,14 +334,13 @@ class VCDGSModel(nn.Module):
             q = roma.quat_product(q, roma.rotvec_to_unitquat(dr))
             offsets = (dc, ds, dr)
         scales, col = log_s.exp(), col.clamp(0.0, 1.0)
-        splats = (x, q, scales, col)
+        fcol = None
         if self.faces is not None:
-            from t2bs.recon.gaussians import with_faces
-
             fcol = self.face_colors[None].expand(len(t_idx), -1, -1)
             if offsets is not None:  # faces take the mean colour offset of their corners
                 fcol = fcol + offsets[0][:, self.faces].mean(2)
-            splats = with_faces(x, q, scales, col, self.faces, fcol.clamp(0.0, 1.0), self.face_log_scale, self.flatness)
+            fcol = fcol.clamp(0.0, 1.0)
+        splats = self.splats_at(x, q, scales, col, fcol)
         return {
             "means": x,
             "quats": q,

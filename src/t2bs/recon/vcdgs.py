@@ -63,7 +63,6 @@ from t2bs.recon.gaussians import (
     fit_static_gaussians,
     init_static_gaussians,
     render,
-    with_faces,
 )
 from t2bs.recon.losses import IMAGE_TERMS, PerceptualLoss, image_loss
 from t2bs.recon.tracks import VertexTracks, compute_tracks, track_loss
@@ -189,6 +188,8 @@ def build_model(
             cfg.runtime.seed,
             device=_device(cfg).type,
             progress=progress,
+            normals=mesh.vertex_normals() if cfg.static_fit.splat_offsets else None,
+            faces_np=mesh.faces,
         )
     cps = build_control_points(
         mesh.vertices,
@@ -214,6 +215,8 @@ def build_model(
         gs.faces,
         gs.face_colors,
         gs.face_log_scale,
+        gs.ring,
+        gs.ring_weights,
     )
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
     p = cps.positions
@@ -593,9 +596,7 @@ def static_splats(model: VCDGSModel, batch: int) -> dict:
 
     x, q = model.means[None].expand(batch, -1, -1), model.quats[None].expand(batch, -1, -1)
     s, c = model.log_scales.exp()[None].expand(batch, -1, -1), model.colors[None].expand(batch, -1, -1)
-    if model.faces is None:
-        return {"splats": (x, q, s, c)}
-    return {"splats": with_faces(x, q, s, c, model.faces, model.face_colors, model.face_log_scale, model.flatness)}
+    return {"splats": model.splats_at(x, q, s, c)}
 
 
 @torch.no_grad()
@@ -736,6 +737,8 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
             faces,
             sd.get("face_colors"),
             sd.get("face_log_scale"),
+            sd.get("splat_ring"),
+            sd.get("splat_ring_weights"),
         )
         model.register_buffer("cp_neighbours", sd["cp_neighbours"])
         model.load_state_dict(sd)

@@ -1,0 +1,102 @@
+"""Where an expression is lost: in the images' optimum, or in the motion model (issue 37).
+
+    python3 benchmarks/amplitude_oracle.py ASSET PROMPT [--set KEY=VALUE ...] [--defects clean] [--steps 300]
+
+Builds the benchmark's grid of ASSET (turtle, facecap, procedural:fox, ...) animated by PROMPT, fits the static
+Gaussians as a reconstruction does, then replaces the whole motion model by the truth with one unknown per frame:
+the splats are placed at the true head motion plus ``s_t`` times the true non-rigid motion (each frame's robust
+rigid fit taken out, as in the expression metric), and only ``s_t`` is fitted, with the training loss, by Adam.
+If the fitted ``s_t`` comes out near 1, the images hold the expression and a reconstruction that misses it loses
+it in the motion model; if not, the splats' appearance biases the photometric optimum itself.
+
+Prints one JSON object: ``amplitude_gain`` (the fitted s_t averaged with weights |non-rigid motion|^2, so the peak
+frames count most), ``peak_gain`` (s_t at the frame of largest motion), the per-frame ``s`` and the seconds.
+Measurements: docs/VCDGS_NOTES.md ("The images hold the blink once the splats end where the lids end").
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+
+import numpy as np  # noqa: E402
+import typer  # noqa: E402
+
+from t2bs.cli.exits import run_command  # noqa: E402
+
+
+def main(
+    asset: str = typer.Argument(..., help="turtle, facecap, vipe_hero_head or procedural:NAME."),
+    prompt: str = typer.Argument(..., help="Expression prompt, e.g. blinking."),
+    set_options: list[str] = typer.Option(None, "--set", help="Any VCDGS option as KEY=VALUE (repeat)."),
+    defects: str = typer.Option("clean", help="Simulated 4D-model defects: clean, mild, paper."),
+    steps: int = typer.Option(300, help="Adam steps on the per-frame amplitudes."),
+    seed: int = typer.Option(0, help="Seed of the static fit and the batches."),
+) -> None:
+    """Fit one amplitude per frame of the true expression and print how much of it the images ask for."""
+    import torch
+
+    from t2bs.eval.bench_vcdgs import load_asset
+    from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
+    from t2bs.recon.config import parse_options, preset
+    from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.losses import PerceptualLoss, image_loss
+    from t2bs.recon.vcdgs import _sample, batch_targets, build_model, prepare_data
+    from t2bs.render.mesh_renderer import MeshRenderer
+    from t2bs.video.defects import preset as defect_preset
+    from t2bs.video.synth import GridConfig, make_grid
+
+    t0 = time.time()
+    cfg = preset("quick", **{"time_budget_s": 0.0, **parse_options(set_options or [])})
+    _, mesh = load_asset(asset)
+    with MeshRenderer() as renderer:
+        grid = make_grid(mesh, prompt, config=GridConfig(size=128), defects=defect_preset(defects), renderer=renderer)
+    torch.manual_seed(seed)
+    data = prepare_data(grid, cfg)
+    model, _ = build_model(mesh, data, cfg)
+    truth = grid.gt_vertices.astype(np.float64)
+    head = apply_motion(*robust_rigid_motion(mesh.vertices, truth), mesh.vertices)  # [T, N, 3]
+    nonrigid = torch.as_tensor(truth - head, dtype=torch.float32)
+    head = torch.as_tensor(head, dtype=torch.float32)
+    amp = torch.zeros(data.frames, requires_grad=True)
+    opt = torch.optim.Adam([amp], lr=0.02)
+    vm, ks = camera_tensors(data.cameras)
+    w, h = data.size
+    perceptual = PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights)
+    gen = torch.Generator().manual_seed(seed)
+    q, s, c = model.quats[None], model.log_scales.exp()[None], model.colors[None]
+    for _ in range(steps):
+        v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, 0.0)
+        b = len(t_idx)
+        x = head[t_idx] + amp[t_idx, None, None] * nonrigid[t_idx]
+        splats = model.splats_at(x, q.expand(b, -1, -1), s.expand(b, -1, -1), c.expand(b, -1, -1))
+        out = render(*splats, vm[v_idx], ks[v_idx], w, h)
+        target, mask = batch_targets(data, v_idx, t_idx)
+        loss = sum(image_loss(out, target, mask, perceptual, cfg).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    fitted = amp.detach().numpy()
+    weight = np.linalg.norm(nonrigid.numpy(), axis=-1).mean(1) ** 2
+    print(
+        json.dumps(
+            {
+                "asset": asset,
+                "prompt": prompt,
+                "defects": defects,
+                "options": set_options or [],
+                "amplitude_gain": round(float((fitted * weight).sum() / max(weight.sum(), 1e-30)), 3),
+                "peak_gain": round(float(fitted[int(weight.argmax())]), 3),
+                "s": [round(float(x), 3) for x in fitted],
+                "seconds": round(time.time() - t0, 1),
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    run_command(main)
