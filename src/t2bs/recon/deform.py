@@ -268,19 +268,10 @@ class VCDGSModel(nn.Module):
         if self.splat_ring is not None:
             edges = x[:, self.splat_ring] - x[:, :, None]  # [B, N, K, 3]
             centres = x + (edges * self.splat_ring_weights[None, :, :, None]).sum(2)
-        if self.faces is None:
-            return centres, q, scales, colors
-        from t2bs.recon.gaussians import face_gaussians
+        from t2bs.recon.gaussians import with_faces
 
-        if face_colors is None:
-            face_colors = self.face_colors[None].expand(len(x), -1, -1)
-        fm, fq, fs = face_gaussians(centres, self.faces, self.face_log_scale, self.flatness)
-        return (
-            torch.cat([centres, fm], 1),
-            torch.cat([q, fq], 1),
-            torch.cat([scales, fs], 1),
-            torch.cat([colors, face_colors], 1),
-        )
+        fcol = self.face_colors if face_colors is None else face_colors
+        return with_faces(centres, q, scales, colors, self.faces, fcol, self.face_log_scale, self.flatness)
 
     # -- encodings of the discrete view / time indices --
     def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:

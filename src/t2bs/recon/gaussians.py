@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from t2bs.geometry.camera import Camera
-from t2bs.geometry.mesh import Mesh, face_area_normals, incident_edge_lengths
+from t2bs.geometry.mesh import Mesh, face_area_normals, incident_edge_lengths, mesh_edges, vertex_normals
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
 
 _warned_backend = False
@@ -227,10 +227,8 @@ RING = 8  # neighbours an offset is spanned by
 
 def vertex_rings(faces: np.ndarray, num_vertices: int, k: int = RING) -> np.ndarray:
     """[N, k] int64: up to k edge neighbours of each vertex, padded with the vertex itself."""
-    f = np.asarray(faces, np.int64)
-    e = np.unique(
-        np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]], f[:, [1, 0]], f[:, [2, 1]], f[:, [0, 2]]]), axis=0
-    )
+    e = mesh_edges(faces)
+    e = np.unique(np.concatenate([e, e[:, ::-1]]), axis=0)  # both directions, sorted by the first vertex
     ring = np.repeat(np.arange(num_vertices, dtype=np.int64)[:, None], k, 1)
     start = np.searchsorted(e[:, 0], np.arange(num_vertices))
     rank = np.arange(len(e)) - start[e[:, 0]]
@@ -283,13 +281,12 @@ def fit_static_gaussians(
     seed: int = 0,
     device: str = "cpu",
     progress: bool = False,
-    normals: np.ndarray | None = None,
-    faces_np: np.ndarray | None = None,
+    offset_faces: np.ndarray | None = None,
 ) -> StaticGaussians:
     """Fit scales and orientations to ``targets`` [C, H, W, 3] float 0..1 (renders of the
     static mesh from ``cameras``), ``masks`` [C, H, W] float or None. The vertices stay fixed.
 
-    ``normals`` [N, 3] (the mesh's vertex normals) and ``faces_np`` [F, 3] (its triangles): also fit ``offsets``, a shift of each vertex Gaussian along the
+    ``offset_faces`` [F, 3] (the mesh's triangles): also fit ``offsets``, a shift of each vertex Gaussian along the
     surface. A Gaussian centred on a part's edge (a lid's margin, a lip's) spreads past it by about its own size
     plus the rasterizer's 0.3 px^2 low-pass, so the splat part looks larger than the mesh part; at rest the excess
     often lies over skin of the same colour and costs nothing, but once the lid slides over the eye it covers too
@@ -309,12 +306,13 @@ def fit_static_gaussians(
     col_logit = torch.logit(torch.as_tensor(gs.colors, device=dev).clamp(0.02, 0.98))
     params = [{"params": [log_s, quats], "lr": lr}]
     bases = off = None
-    if normals is not None:
+    if offset_faces is not None:
+        normals = vertex_normals(gs.means, offset_faces)
         bases = tangent_bases(torch.as_tensor(normals, dtype=torch.float32, device=dev))  # [N, 3, 2]
         # Only the Gaussians at an open edge (a lid's margin, a lip's, the rim of a part) move: elsewhere the
         # neighbours' Gaussians overlap on every side, and a free shift only trades places with them (every
         # Gaussian free: lid gain 0.40, the lid's Gaussians painting the head's places as it moves).
-        bases = bases * torch.as_tensor(near_open_edges(faces_np, len(means)), device=dev)[:, None, None]
+        bases = bases * torch.as_tensor(near_open_edges(offset_faces, len(means)), device=dev)[:, None, None]
         off = torch.nn.Parameter(torch.zeros(len(means), 2, device=dev))
         params += [{"params": [off], "lr": OFFSET_LR}]
     faces = None
@@ -358,7 +356,7 @@ def fit_static_gaussians(
         offsets = ring = None
         if off is not None:
             offsets = (bases @ off[..., None])[..., 0].cpu().numpy().astype(np.float32)
-            ring = vertex_rings(faces_np, len(gs.means))
+            ring = vertex_rings(offset_faces, len(gs.means))
         fc = fl = None
         if faces is not None:
             fc = torch.sigmoid(fcol_logit).cpu().numpy().astype(np.float32)

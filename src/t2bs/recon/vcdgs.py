@@ -188,8 +188,7 @@ def build_model(
             cfg.runtime.seed,
             device=_device(cfg).type,
             progress=progress,
-            normals=mesh.vertex_normals() if cfg.static_fit.splat_offsets else None,
-            faces_np=mesh.faces,
+            offset_faces=mesh.faces if cfg.static_fit.splat_offsets else None,
         )
     cps = build_control_points(
         mesh.vertices,

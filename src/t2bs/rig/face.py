@@ -214,8 +214,8 @@ def landmarks_mediapipe(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], s
         ids[12:] = seam.ids
         pts = np.concatenate([pts[:12], uv[seam.ids]])
         # The detector's chin came with its mouth: it must lie well below the seam to be a chin.
-        em = 0.5 * (pts[:6, 1].mean() + pts[6:12, 1].mean())
-        if uv[named["chin"], 1] < uv[seam.ids[[5, 6, 7]], 1].max() + 0.25 * (pts[12:, 1].mean() - em):
+        eye_y = 0.5 * (pts[:6, 1].mean() + pts[6:12, 1].mean())
+        if uv[named["chin"], 1] < uv[seam.ids[[5, 6, 7]], 1].max() + 0.25 * (pts[12:, 1].mean() - eye_y):
             del named["chin"]
     return ids, named, pts, seam is not None
 
