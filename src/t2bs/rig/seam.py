@@ -92,7 +92,7 @@ def find_lip_seam(
     surf = Surface(v, faces)
     d_top, _ = surf.distance([nearest_skin(m[0], m[1] - 0.45 * em_px)])
     d_bot, _ = surf.distance([nearest_skin(m[0], m[1] + 0.9 * em_px)])
-    # World size of a pixel at the face, for the eye distance in world units.
+    # The eye distance in world units (the thresholds below are fractions of it).
     er3, el3 = v[nearest_skin(*eye_r)], v[nearest_skin(*eye_l)]
     iod = float(np.linalg.norm(el3 - er3))
     rows = np.arange(max(int(m[1] - 0.35 * em_px), 0), min(int(m[1] + 0.85 * em_px) + 1, h))
@@ -115,7 +115,8 @@ def find_lip_seam(
     score = np.full(valid.shape, -np.inf)
     below = np.arange(len(rows))[:, None] + np.ones(len(cols), np.int64)[None]  # the lower lip's row
     n_valid = np.concatenate([np.zeros((1, len(cols)), np.int64), np.cumsum(valid, 0)])
-    for g in range(1, max(1, round(0.1 * iod_px)) + 1):
+    max_gap = max(1, round(0.1 * iod_px))
+    for g in range(1, max_gap + 1):
         if g >= len(rows):
             break
         gap = np.linalg.norm(p3[g:] - p3[:-g], axis=-1)
@@ -162,7 +163,6 @@ def find_lip_seam(
     for j in range(run[0], run[-1] + 1):  # short gaps inside the run take the neighbours' row
         if j not in line:
             line[j] = line[max(i for i in line if i < j)]
-    max_gap = max(1, round(0.1 * iod_px))
 
     def opening(j: int, upper: int, lower: int) -> tuple[int, int] | None:
         """(upper row, lower row) of a visible gap between two skin rows in column j that overlaps
@@ -224,10 +224,8 @@ def find_lip_seam(
         ty = sy[q] + 1.0 if upper else float(rows[min(y2, len(rows) - 1)])  # the line's edge on that side
         return int(cand[np.argmin(np.hypot(uv[cand, 0] - sx[q] - 0.5, uv[cand, 1] - ty))])
 
-    def corner(q: int) -> int:
-        return int(seen[np.argmin(np.hypot(uv[seen, 0] - sx[q], uv[seen, 1] - sy[q] - 0.5))])
-
     # 60 (the character's right corner: image left), 61-63 upper lip right -> left, 64, 65-67 lower left -> right.
-    ids = [corner(0), lip(0.25, True), lip(0.5, True), lip(0.75, True), corner(len(sx) - 1)]
+    ids = [nearest_skin(sx[0], sy[0] + 0.5), lip(0.25, True), lip(0.5, True), lip(0.75, True)]
+    ids += [nearest_skin(sx[-1], sy[-1] + 0.5)]
     ids += [lip(0.75, False), lip(0.5, False), lip(0.25, False)]
     return LipSeam(np.asarray(ids, np.int64), np.stack([sx, sy], 1).astype(np.float64), len(seam_cols))
