@@ -17,7 +17,15 @@ import numpy as np
 import torch
 
 from t2bs.geometry.camera import Camera
-from t2bs.geometry.mesh import Mesh, face_area_normals, incident_edge_lengths, mesh_edges, vertex_normals
+from t2bs.geometry.mesh import (
+    Mesh,
+    face_area_normals,
+    incident_edge_lengths,
+    mesh_edges,
+    vertex_normals,
+    weld_index,
+    welded_edges,
+)
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
 
 _warned_backend = False
@@ -237,19 +245,22 @@ def vertex_rings(faces: np.ndarray, num_vertices: int, k: int = RING) -> np.ndar
     return ring
 
 
-def near_open_edges(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+def near_open_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[N] float32: 1 on the vertices of an edge that only one triangle uses (a hole's rim, a part's border) and on
     their neighbours (the second row spreads past a jagged border too; lid scene: lid gain 0.70 with the rim alone,
-    0.74 with the neighbours, the same with two rows), else 0."""
-    f = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
-    u, count = np.unique(e, axis=0, return_counts=True)
-    rim = np.zeros(num_vertices, bool)
-    rim[u[count == 1].ravel()] = True
+    0.74 with the neighbours, the same with two rows), else 0. Counted on welded vertices (``weld_index``): where an
+    exporter split the surface at a UV seam, the seam is not a border."""
+    node, first = weld_index(vertices)
+    e = welded_edges(node, faces)
+    f = node[np.asarray(faces, np.int64)]
+    used = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
+    used, count = np.unique(used[used[:, 0] != used[:, 1]], axis=0, return_counts=True)
+    rim = np.zeros(len(first), bool)
+    rim[used[count == 1].ravel()] = True
     out = rim.copy()
-    out[u[:, 0][rim[u[:, 1]]]] = True
-    out[u[:, 1][rim[u[:, 0]]]] = True
-    return out.astype(np.float32)
+    out[e[:, 0][rim[e[:, 1]]]] = True
+    out[e[:, 1][rim[e[:, 0]]]] = True
+    return out[node].astype(np.float32)
 
 
 def ring_weights(vertices: np.ndarray, ring: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -312,7 +323,7 @@ def fit_static_gaussians(
         # Only the Gaussians at an open edge (a lid's margin, a lip's, the rim of a part) move: elsewhere the
         # neighbours' Gaussians overlap on every side, and a free shift only trades places with them (every
         # Gaussian free: lid gain 0.40, the lid's Gaussians painting the head's places as it moves).
-        bases = bases * torch.as_tensor(near_open_edges(offset_faces, len(means)), device=dev)[:, None, None]
+        bases = bases * torch.as_tensor(near_open_edges(gs.means, offset_faces), device=dev)[:, None, None]
         off = torch.nn.Parameter(torch.zeros(len(means), 2, device=dev))
         params += [{"params": [off], "lr": OFFSET_LR}]
     faces = None
