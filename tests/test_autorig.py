@@ -474,3 +474,178 @@ def test_sealed_mouth_has_no_lip_seam():
     vis &= np.isin(np.arange(mesh.num_vertices), parts["head"])
     eyes_px, mouth_px = uv_slit[lm[:12]], uv_slit[lm[12:]]  # where the slit head's points are
     assert find_lip_seam(mesh.vertices, mesh.faces, uv, rendered, vis, eyes_px, mouth_px) is None
+
+
+# ---- flat (painted) eyes: an anime head's eye white painted on the skin, a flat iris disc, a lash card
+SKIN_RGB, WHITE_RGB, IRIS_RGB, LASH_RGB = (0.8, 0.4, 0.5), (1.0, 1.0, 1.0), (0.4, 0.1, 0.7), (0.05, 0.05, 0.1)
+
+
+def _polar_grid(centre, radii, angles, z_of, disc: bool):
+    """Vertices [V, 3] and faces of a sheet facing +Z: rings at ``radii`` ([R] half axes (a, b)) x ``angles``, at the
+    depth z_of(x, y). ``disc``: the angles go all round and a centre vertex fans the innermost ring; else a strip."""
+    n = len(angles)
+    verts = [np.asarray(centre, np.float64)] if disc else []
+    for a, b in radii:
+        verts += list(centre + np.stack([a * np.cos(angles), b * np.sin(angles)], axis=1))
+    off, nxt = (1, lambda j: (j + 1) % n) if disc else (0, lambda j: j + 1)
+    faces = [(0, 1 + j, 1 + nxt(j)) for j in range(n)] if disc else []
+    for k in range(len(radii) - 1):
+        for j in range(n if disc else n - 1):
+            p, q = off + k * n + j, off + k * n + nxt(j)
+            faces += [(p, p + n, q + n), (p, q + n, q)]
+    xy = np.asarray(verts)
+    return np.concatenate([xy, z_of(xy[:, 0], xy[:, 1])[:, None]], axis=1), np.asarray(faces)
+
+
+def painted_head(count: int = 128):
+    """A sphere head (radius 0.5, facing +Z, no eye holes) with painted eyes: the skin's vertex colour is white
+    inside each eye ellipse, a flat iris disc floats just in front of it, a lash card lies along its upper edge;
+    a slit mouth. Returns (mesh, landmark ids [20] on the painted outline, parts {name: vertex ids})."""
+    import trimesh
+
+    head = trimesh.creation.uv_sphere(radius=0.5, count=[count, count])
+    c = head.triangles_center
+    head.update_faces(~((np.abs(c[:, 0]) < MOUTH_HALF) & (np.abs(c[:, 1] - MOUTH_Y) < 0.012) & (c[:, 2] > 0)))
+    head.remove_unreferenced_vertices()
+    hv = np.asarray(head.vertices)
+    colours = np.tile(SKIN_RGB, (len(hv), 1))
+    on_skin = lambda dz: lambda x, y: np.sqrt(0.25 - x**2 - y**2) + dz  # noqa: E731
+    parts = [("head", hv, np.asarray(head.faces), colours)]
+    for side, sx in (("left", 1), ("right", -1)):
+        ell = ((hv[:, 0] - sx * EYE_X) / EYE_A) ** 2 + ((hv[:, 1] - EYE_Y) / EYE_B) ** 2 < 1
+        colours[ell & (hv[:, 2] > 0)] = WHITE_RGB
+        centre = np.array([sx * EYE_X - 0.2 * EYE_A * sx, EYE_Y])  # the iris looks a little inwards
+        ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        v_i, f_i = _polar_grid(centre, [(0.2 * EYE_B * k,) * 2 for k in (1, 2, 3)], ring, on_skin(0.012), True)
+        parts.append((f"iris_{side}", v_i, f_i, np.tile(IRIS_RGB, (len(v_i), 1))))
+        top = np.radians(np.linspace(12, 168, 20))
+        v_l, f_l = _polar_grid(
+            np.array([sx * EYE_X, EYE_Y]), [(EYE_A, EYE_B), (1.15 * EYE_A, 1.45 * EYE_B)], top, on_skin(0.006), False
+        )
+        parts.append((f"lash_{side}", v_l, f_l, np.tile(LASH_RGB, (len(v_l), 1))))
+    verts, faces, cols, ids, n = [], [], [], {}, 0
+    for name, pv, pf, pc in parts:
+        verts.append(pv)
+        faces.append(pf + n)
+        cols.append(pc)
+        ids[name] = np.arange(n, n + len(pv))
+        n += len(pv)
+    mesh = Mesh(
+        np.concatenate(verts).astype(np.float32),
+        np.concatenate(faces).astype(np.int32),
+        vertex_colors=np.concatenate(cols).astype(np.float32),
+    )
+    v = mesh.vertices
+    skin = ids["head"][v[ids["head"], 2] > 0]
+    lm = []
+    for sx in (-1, 1):  # 36-41 the right eye (-X), then 42-47 the left eye (+X): skin just outside the white
+        out = skin[((v[skin, 0] - sx * EYE_X) / EYE_A) ** 2 + ((v[skin, 1] - EYE_Y) / EYE_B) ** 2 >= 1]
+        for a in np.radians(EYE_ANGLES):
+            target = np.array([sx * EYE_X + EYE_A * np.cos(a), EYE_Y + EYE_B * np.sin(a)])
+            lm.append(int(out[np.argmin(np.linalg.norm(v[out, :2] - target, axis=1))]))
+    rim = np.intersect1d(_boundary(np.asarray(head.faces)), ids["head"])
+    for a in MOUTH_ANGLES:
+        r = np.radians(a)
+        target = np.array([MOUTH_HALF * np.cos(r), MOUTH_Y + 0.01 * np.sin(r)])
+        cand = rim[np.abs(v[rim, 1] - MOUTH_Y) < 0.05]
+        cand = cand[v[cand, 1] > MOUTH_Y] if 0 < a < 180 else cand[v[cand, 1] < MOUTH_Y] if a < 0 else cand
+        lm.append(int(cand[np.argmin(np.linalg.norm(v[cand, :2] - target, axis=1))]))
+    return mesh, np.asarray(lm), ids
+
+
+@pytest.fixture(scope="module")
+def flat_head():
+    mesh, lm, parts = painted_head()
+    face = FaceLandmarks(lm, "file", {}, find_eyeballs(mesh))
+    return mesh, lm, parts, face, autorig(mesh, face)
+
+
+def test_flat_eye_squashes_onto_the_meeting_line(flat_head, head):
+    """No eyeball behind the lids (a painted eye, a flat iris disc): the lids slide straight down / up in the
+    face's plane, the painted opening's upper and lower edge meet on the line 20 % of the way up from the lower
+    lid, nothing passes it, and nothing moves outside that eye's lids (the lash card and iris go with them)."""
+    from t2bs.rig.autorig import AutoRigConfig
+
+    mesh, lm, parts, face, rig = flat_head
+    assert face.eyeballs == {}  # a flat disc is no eyeball
+    assert head[5].info["eye_left"]["lids"] == "turn about the eyeball"  # the ball head keeps its turning lids
+    v = mesh.vertices.astype(np.float64)
+    we = 2 * EYE_A
+    for side, sl, sx in (("left", slice(6, 12), 1), ("right", slice(0, 6), -1)):
+        info = rig.info[f"eye_{side}"]
+        assert info["lids"] == "slide (flat eye)" and info["eye_surface"] == "flat", info
+        d = rig.morph_targets[f"eyeBlink{side.capitalize()}"].astype(np.float64)
+        eye = lm[sl]
+        # The eye's frame: across the corner-to-corner axis, in the face's plane (the grid tilts it a little).
+        axis = (v[eye[3]] - v[eye[0]]) / np.linalg.norm(v[eye[3]] - v[eye[0]]) * sx
+        up = np.array([0, 1.0, 0]) - axis[1] * axis
+        up /= np.linalg.norm(up)
+        h, h_closed = v @ up, (v + d) @ up
+        h_up, h_lo = h[eye[[1, 2]]].mean(), h[eye[[4, 5]]].mean()
+        h_m = h_lo + AutoRigConfig().lid_meet * (h_up - h_lo)
+        # The painted opening's upper edge (and its lower edge) reaches the meeting line.
+        assert np.abs(h_closed[eye[[1, 2, 4, 5]]] - h_m).max() < 1e-4, (h_closed[eye], h_m)
+        assert (h_closed - h)[eye[[1, 2]]].max() < -0.7 * (h_up - h_lo)  # the upper lid travels most of the way
+        assert 0 < (h_closed - h)[eye[[4, 5]]].min() < 0.3 * (h_up - h_lo)  # the lower lid a little
+        # A slide across the eye: straight down / up in the face's plane, neither sideways nor out of it.
+        assert np.abs(d - np.outer(d @ up, up)).max() < 1e-6
+        # No vertex passes the meeting line.
+        moved = np.linalg.norm(d, axis=1) > 1e-7
+        assert np.all((h[moved] - h_m) * (h_closed[moved] - h_m) >= -1e-9)
+        # Only this eye's lids move: its own side, within the lid falloff (0.45 eye widths) of the opening.
+        assert np.all(sx * v[moved, 0] > 0)
+        assert np.all(np.abs(v[moved, 0] - sx * EYE_X) < EYE_A + 0.45 * we)
+        assert np.all(np.abs(v[moved, 1] - EYE_Y) < EYE_B + 0.45 * we)
+        other = "right" if side == "left" else "left"
+        for p in (f"iris_{other}", f"lash_{other}"):
+            assert np.abs(d[parts[p]]).max() == 0
+        # The lash card goes down with the upper lid; the iris squashes with the opening.
+        lash = parts[f"lash_{side}"]
+        assert np.all(d[lash] @ up < 0) and (d[lash] @ up).min() < -0.5 * (h_up - h_m)
+        assert np.abs(d[parts[f"iris_{side}"]]).max() > 0
+
+
+def test_eye_surface_decides_turn_or_slide(head, flat_head):
+    """The lids turn about a ball only where the skin seen in the opening bulges like one (an eye sculpted into the
+    skin: here the ball head's eyeballs taken as skin); a painted eye on the face's curve and a hole slide."""
+    from t2bs.rig.autorig import _eye_is_round
+
+    mesh, lm = head[0], head[1]
+    v = mesh.vertices.astype(np.float64)
+    sculpted = np.ones(len(v), bool)  # the eyeballs as if they were the skin's own bulge
+    hole = np.isin(np.arange(len(v)), head[2]["head"])
+    flat_v = flat_head[0].vertices.astype(np.float64)
+    painted = np.isin(np.arange(len(flat_v)), flat_head[2]["head"])
+    for sl in (slice(0, 6), slice(6, 12)):
+        pts, flat_pts = v[lm[sl]], flat_v[flat_head[1][sl]]
+        we, flat_we = float(np.linalg.norm(pts[0] - pts[3])), float(np.linalg.norm(flat_pts[0] - flat_pts[3]))
+        got, info = _eye_is_round(v, sculpted, pts, we, None)
+        assert got is True and info["eye_surface_radius_eye_widths"] < 1, info
+        assert _eye_is_round(v, hole, pts, we, None)[0] is False  # the rim around a hole: the face's curve
+        got, info = _eye_is_round(flat_v, painted, flat_pts, flat_we, None)
+        assert got is False and info["eye_surface_radius_eye_widths"] > 2, info  # the head's own curve (3.3)
+        # With the iris disc and the lash card counted as eye surface the painted eye would look like a dome.
+        assert _eye_is_round(flat_v, np.ones(len(flat_v), bool), flat_pts, flat_we, None)[0] is True
+
+
+def test_painted_eye_outline_gives_the_lid_points():
+    """A flat eye part (the iris disc, or the lash card the detector's eye centre falls on): the opening is the eye
+    white painted around it, not the disc's outline; the points go on the skin at the white's edge, under the lash
+    card where it hides the skin, upper points on the upper edge, lower on the lower, right eye first."""
+    from t2bs.render.mesh_renderer import MeshRenderer
+    from t2bs.rig.face import eyes_from_parts
+
+    mesh, _, parts = painted_head()
+    v = mesh.vertices.astype(np.float64)
+    with MeshRenderer() as r:
+        by_iris = eyes_from_parts(mesh, r, {s: parts[f"iris_{s}"] for s in ("left", "right")}, flat=True)
+        by_lash = eyes_from_parts(mesh, r, {s: parts[f"lash_{s}"] for s in ("left", "right")}, flat=True)
+    for ids in (by_iris, by_lash):
+        assert np.all(np.isin(ids, parts["head"]))  # on the skin, not on the lash card or the iris
+        for sl, sx in ((slice(0, 6), -1), (slice(6, 12), 1)):
+            p = v[ids[sl]]
+            e = ((p[:, 0] - sx * EYE_X) / EYE_A) ** 2 + ((p[:, 1] - EYE_Y) / EYE_B) ** 2
+            assert np.all((e > 0.8) & (e < 1.6)), e  # on the white's outline (the iris is 0.35 of it)
+            assert np.all(p[[1, 2], 1] > EYE_Y + 0.5 * EYE_B) and np.all(p[[4, 5], 1] < EYE_Y - 0.5 * EYE_B)
+            assert p[0, 0] < p[1, 0] < p[2, 0] < p[3, 0] and p[0, 0] < p[5, 0] < p[4, 0] < p[3, 0]
+    assert np.array_equal(by_iris, by_lash)

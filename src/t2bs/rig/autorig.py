@@ -11,13 +11,15 @@ deformer evaluated once at full strength and stored as per-vertex offsets [N, 3]
   anchors lie on opposite sides of the opening and the lips part; a sealed mouth is reported.
   Parts the surface does not reach (teeth, tongue, a separate jaw) follow the jaw if they sit
   below the mouth line (rigid when small, like a tooth).
-- lids (eyeBlink*, eyeWide*, eyeSquint*): lid vertices turn about the eyeball centre (a fitted
-  eyeball part, else a sphere behind the lid opening) around the eye's corner-to-corner axis;
-  a turn about the centre keeps each vertex's distance to it, so a lid never enters the ball.
-  The upper lid turns down and the lower lid up until both reach the meeting line, and no vertex
-  passes it. Weights fall off geodesically from the lid margin (the surface path through the
-  lid landmarks, 0 at the corners) and the upper lid's weight is cut where the lower lid is
-  nearer, so weights never leak from one lid to the other.
+- lids (eyeBlink*, eyeWide*, eyeSquint*): over a round eye (a fitted eyeball part, else a surface
+  in the opening that bulges like a ball: a sphere behind the lid opening) lid vertices turn about
+  the eyeball centre around the eye's corner-to-corner axis; a turn about the centre keeps each
+  vertex's distance to it, so a lid never enters the ball. Over a flat eye (a painted eye, a flat
+  eye disc, a socket, an empty opening) there is no ball: lid vertices slide across that axis in
+  the face's plane and the opening squashes. The upper lid moves down and the lower lid up until
+  both reach the meeting line, and no vertex passes it. Weights fall off geodesically from the lid
+  margin (the surface path through the lid landmarks, 0 at the corners) and the upper lid's weight
+  is cut where the lower lid is nearer, so weights never leak from one lid to the other.
 - eyeballs (eyeLook*): a separate eyeball part turns rigidly about its centre.
 - mouth, cheeks, brows, nose (mouthSmile*, mouthFrown*, browInnerUp, ...): surface-tangent
   displacements of a seed point with a smooth geodesic falloff (Wendland-like (1 - t^2)^2).
@@ -434,6 +436,63 @@ def _smooth_on(surf: Surface, idx: np.ndarray, w: np.ndarray, iterations: int = 
     return out
 
 
+# A surface seen in a lid opening is an eyeball the lids turn about when it fits a ball of at most this
+# radius, in eye widths (corner to corner): a human eyeball is about 0.4 eye widths in radius, the face it
+# sits in about 2 (a head is some four eye widths across). In between, on a log scale.
+ROUND_EYE_MAX_RADIUS = 1.0
+
+
+def _inside_polygon(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """[P] bool: points p [P, 2] inside the closed polygon [K, 2] (even-odd rule)."""
+    inside = np.zeros(len(p), bool)
+    for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0)):
+        crosses = (y0 > p[:, 1]) != (y1 > p[:, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = x0 + (p[:, 1] - y0) * (x1 - x0) / (y1 - y0)
+        inside ^= crosses & (p[:, 0] < x)
+    return inside
+
+
+def _eye_is_round(
+    v: np.ndarray, skin: np.ndarray, pts: np.ndarray, we: float, ball: np.ndarray | None
+) -> tuple[bool, dict]:
+    """Whether the lids close over a ball (and turn about it) or over a flat eye (and slide), from geometry.
+
+    A sphere-shaped eyeball part (``find_eyeballs``: a sphere fit within 8 % of its radius, or a part
+    labelled as an eye) is round. Without one, the skin (``skin`` [N] bool) seen in the lid opening decides:
+    a sphere is fitted to the six lid points and every skin vertex inside their outline (seen across the
+    plane of the lid points, within half an eye width of it). An eye sculpted into the skin bulges towards
+    the viewer like a ball: the fitted centre lies behind that plane and the radius is eye-sized
+    (ROUND_EYE_MAX_RADIUS). An eye painted on the skin gives the face's own curvature (a radius of several
+    eye widths), a plane, or a hollow (a socket: the centre in front of the lids); a hole in the skin has
+    nothing in it. Then there is no ball to turn about (turning about an invented one swings the lid skin
+    out of the face) and the lids slide. Other parts in the opening do not count: a flat iris disc or a
+    lash card floating in front of a painted eye would make a dome of it; they lie on the skin and move
+    with it (``_attachments``).
+    """
+    if ball is not None and len(ball) >= 4:
+        return True, {"eye_surface": "eyeball part"}
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c)
+    normal = vt[2] if vt[2, 2] >= 0 else -vt[2]  # the lid points' plane, facing the viewer (+Z)
+    q = v - c
+    depth = q @ normal
+    in_plane = np.stack([q @ vt[0], q @ vt[1]], axis=1)
+    outline = np.stack([(pts - c) @ vt[0], (pts - c) @ vt[1]], axis=1)  # 36-41 go round the eye in order
+    seen = skin & _inside_polygon(in_plane, outline) & (np.abs(depth) < 0.5 * we)
+    if not seen.any():
+        return False, {"eye_surface": "empty opening"}
+    centre, radius, _ = fit_sphere(np.concatenate([pts, v[seen]]))
+    behind = float((centre - c) @ normal) < 0
+    round_eye = bool(behind and radius <= ROUND_EYE_MAX_RADIUS * we)
+    info = {
+        "eye_surface": "round" if round_eye else "flat",
+        "eye_surface_radius_eye_widths": round(float(radius / we), 3),
+        "eye_surface_centre": "behind the lids" if behind else "in front of the lids",
+    }
+    return round_eye, info
+
+
 def _lids(
     f: _Face,
     surf: Surface,
@@ -442,22 +501,32 @@ def _lids(
     config: AutoRigConfig,
     attached: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:
-    """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line)."""
+    """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line).
+
+    Round eyes (see ``_eye_is_round``): lid vertices turn about the eyeball's centre around the corner-to-corner
+    axis, by angle. Flat eyes: they slide along the eye's up direction (in the face's plane, across that
+    axis), by height: the opening squashes onto the meeting line. The weights are the same for both.
+    """
     v, pts, pid = f.v, f.P[EYES[side]], f.ids[EYES[side]]
     we = float(np.linalg.norm(pts[0] - pts[3]))
-    if ball is not None and len(ball) >= 4:
-        centre, r_ball, _ = fit_sphere(v[ball])
-    else:
-        # No eyeball part: a ball behind the lid opening, as wide as the opening.
-        r_ball = 0.5 * we
-        centre = pts.mean(0) - np.array([0, 0, 0.6 * r_ball])
     axis = _unit(pts[3] - pts[0]) if pts[3, 0] > pts[0, 0] else _unit(pts[0] - pts[3])
     upv = _unit(np.array([0, 1.0, 0]) - axis[1] * axis)
     fwd = np.cross(axis, upv)
+    round_eye, shape = _eye_is_round(v, f.skin, pts, we, ball)
+    if ball is not None and len(ball) >= 4:
+        centre, r_ball, _ = fit_sphere(v[ball])
+    else:
+        # No eyeball part: a ball behind the lid opening, as wide as the opening (round eyes only).
+        r_ball = 0.5 * we
+        centre = pts.mean(0) - np.array([0, 0, 0.6 * r_ball])
+    origin = pts.mean(0)
 
     def elevation(p):
-        q = np.asarray(p) - centre
-        return np.arctan2(q @ upv, q @ fwd)
+        """Where a point is between the lids: its angle about the ball (round) or its height (flat)."""
+        if round_eye:
+            q = np.asarray(p) - centre
+            return np.arctan2(q @ upv, q @ fwd)
+        return (np.asarray(p) - origin) @ upv
 
     th_u, th_l = float(elevation(pts[[1, 2]]).mean()), float(elevation(pts[[4, 5]]).mean())
     if th_u <= th_l:
@@ -502,8 +571,8 @@ def _lids(
         # instead of splitting where its nearest skin vertex changes lid.
         w_u, w_l = _smooth_on(surf, idx, w_u), _smooth_on(surf, idx, w_l)
     th = elevation(v)
-    # Each vertex turns as far as the margin point nearest to it must to reach the meeting line, so
-    # the whole margin (not only its mean) closes on a lid of any shape.
+    # Each vertex turns (slides) as far as the margin point nearest to it must to reach the meeting
+    # line, so the whole margin (not only its mean) closes on a lid of any shape.
     th_node = elevation(v[surf.first])
     span_u = np.where(src_u >= 0, np.maximum(th_node[np.maximum(src_u, 0)] - th_m, 0.0), 0.0)
     span_l = np.where(src_l >= 0, np.maximum(th_m - th_node[np.maximum(src_l, 0)], 0.0), 0.0)
@@ -517,6 +586,9 @@ def _lids(
             new = np.where((w_l > w_u) & (th <= th_m), np.minimum(new, np.maximum(th, th_m)), new)
         off = np.zeros_like(v)
         idx = np.nonzero(sel)[0]
+        if not round_eye:  # flat: a slide across the corner-to-corner axis, in the face's plane
+            off[idx] = (new[idx] - th[idx])[:, None] * upv[None]
+            return off
         moved = rotate_about(v[idx], centre, axis, th[idx] - new[idx])
         # A turn about the ball's centre keeps every distance to it; lid vertices that already touch
         # the ball (numerically inside it) are put on its surface so none end up within it.
@@ -526,12 +598,16 @@ def _lids(
         off[idx] = moved - v[idx]
         return off
 
-    info = {
-        "centre": [round(float(x), 5) for x in centre],
-        "radius": round(float(r_ball), 5),
-        "eyeball_part": ball is not None and len(ball) >= 4,
-        "closing_deg": round(float(np.degrees(th_u - th_l)), 2),
-    }
+    info = {"lids": "turn about the eyeball" if round_eye else "slide (flat eye)", **shape}
+    if round_eye:
+        info.update(
+            centre=[round(float(x), 5) for x in centre],
+            radius=round(float(r_ball), 5),
+            closing_deg=round(float(np.degrees(th_u - th_l)), 2),
+        )
+    else:
+        info["closing_eye_widths"] = round(float((th_u - th_l) / we), 3)
+    info["eyeball_part"] = ball is not None and len(ball) >= 4
     return {"move": move, "w_upper": w_u, "info": info}
 
 

@@ -12,7 +12,9 @@ Sources, first that works:
    eyes and a mouth): the 20 points and the brows / chin, lifted to the nearest visible vertex.
    Where the mesh has separate eyeball parts, the eye points come from them instead (the skin
    just outside what the front camera sees of each ball): geometry beats a detector trained on
-   human photos when the eyes are a cartoon's.
+   human photos when the eyes are a cartoon's. A flat eye part (an anime iris disc or lash card
+   seen at the detected eye) gives the opening with the eye white painted on the skin around it
+   (``painted_eye``), and the points go on the skin at its edge, under a lash card if one hides it.
 
 Eyeballs come from part labels (eye_left / eye_right) or, on unlabelled meshes, from separate
 sphere-shaped parts (a mirrored pair): they give the centre the lids turn about and the vertices
@@ -22,7 +24,7 @@ the eyeLook* shapes turn.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -246,26 +248,95 @@ def eye_parts_at(mesh: Mesh, renderer, points2d: np.ndarray, size: int = 512) ->
     )
 
 
-def eyes_from_parts(mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512) -> np.ndarray | None:
+# A skin pixel belongs to a painted eye (the white around a flat iris) when its colour is this far from the
+# skin's median colour (RGB in [0, 1], unlit render: no shading): a painted eye white or lash line is a
+# different colour (vipe's pink skin to its eye white: 0.83), a texture's own variation is not (blush, pores,
+# baked shading: under 0.1).
+PAINT_STEP = 0.25
+
+
+def painted_eye(part: np.ndarray, seen_comp: np.ndarray, skin_comp: int, rgb: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the eye opening around a flat eye part (``part`` [H, W] bool, its pixels): the eye white
+    painted on the skin around it and the parts inside that (an iris disc), not the lash card over it.
+
+    Painted: skin pixels (``seen_comp`` [H, W] the component seen at each pixel, -1 background) of another
+    colour than the skin's median (PAINT_STEP), connected to the part, no farther from it than its own width
+    and height (a painted eye is a few iris sizes across; a brow or a cheek mark beside it is not taken).
+    Parts whose pixels lie mostly within the painted region's convex hull are in the eye (an iris, a pupil,
+    the part itself when it is the iris); a lash card lies along the region's edge, mostly outside its hull,
+    and stays out, so the region ends at the lash line, where the lid margin is. Nothing painted: the part."""
+    from scipy import ndimage
+    from scipy.spatial import ConvexHull, QhullError
+
+    ys, xs = np.nonzero(part)
+    skin = seen_comp == skin_comp
+    if len(xs) == 0 or not skin.any():
+        return part
+    w, h = xs.max() - xs.min() + 1, ys.max() - ys.min() + 1
+    window = np.zeros_like(part)
+    window[max(ys.min() - 2 * h, 0) : ys.max() + 2 * h + 1, max(xs.min() - 2 * w, 0) : xs.max() + 2 * w + 1] = True
+    paint = skin & window & (np.linalg.norm(rgb - np.median(rgb[skin], axis=0), axis=-1) > PAINT_STEP)
+    lab, _ = ndimage.label(paint | part, structure=np.ones((3, 3)))
+    touching = np.unique(lab[part])
+    paint &= np.isin(lab, touching[touching > 0])
+    py, px = np.nonzero(paint)
+    if len(px) < 16:
+        return part
+    try:
+        hull = ConvexHull(np.stack([px, py], axis=1)).equations  # inside: a x + b y + c <= 0 for every edge
+    except QhullError:  # a painted line, no area
+        return part
+    region = paint.copy()
+    for c in np.unique(seen_comp[window & ~skin & (seen_comp >= 0)]):
+        cy, cx = np.nonzero((seen_comp == c) & window)
+        inside = np.all(np.stack([cx, cy], axis=1) @ hull[:, :2].T + hull[:, 2] <= 0.5, axis=1)
+        if inside.mean() > 0.5:
+            region[cy, cx] = True
+    return ndimage.binary_fill_holes(region)
+
+
+def eyes_from_parts(
+    mesh: Mesh, renderer, eyeballs: dict[str, np.ndarray], size: int = 512, flat: bool = False
+) -> np.ndarray | None:
     """[12] eye landmark ids (36-47) from separate eye parts (balls or discs): the lid margin is the
     surface just outside what the frontal camera sees of each part (as the parts backend does with
-    labelled eyes). None when a part is not seen from the front."""
+    labelled eyes). None when a part is not seen from the front.
+
+    ``flat``: the parts are flat eyes (an iris disc, ``eye_parts_at``): the opening is the part and the
+    eye white painted on the skin around it (``painted_eye``), and the points go on the skin there even
+    where a lash card hides it (the lid margin is the skin under the lashes)."""
+    from scipy import ndimage
+
     from t2bs.geometry.camera import frontal_camera
     from t2bs.face.landmarks import EYE_ANGLES, contour_points, largest_component, lift_points
 
     cam = frontal_camera(size)
-    fid = renderer.render(mesh, cam, shading="unlit").face_id
+    rendered = renderer.render(mesh, cam, shading="unlit")
+    fid = rendered.face_id
     seen_vertex = np.where(fid >= 0, mesh.faces[np.maximum(fid, 0), 0], -1)
     balls = np.concatenate(list(eyeballs.values()))
     vis = renderer.vertex_visibility(mesh, cam)
     vis[balls] = False
+    if flat:
+        comp = welded_components(mesh.vertices, mesh.faces)
+        seen_comp = np.where(seen_vertex >= 0, comp[np.maximum(seen_vertex, 0)], -1)
     out = []
     for side in ("right", "left"):  # 36-41 then 42-47
         mask = largest_component(np.isin(seen_vertex, eyeballs[side]))
         if mask.sum() < 16:
             return None
+        visible = vis
+        if flat:
+            # The skin: the part seen most around the eye part (not the eye part itself).
+            ring = ndimage.binary_dilation(mask, np.ones((3, 3)), iterations=3) & ~mask & (seen_comp >= 0)
+            if not ring.any():
+                return None
+            skin_c = int(np.bincount(seen_comp[ring]).argmax())
+            mask = painted_eye(mask, seen_comp, skin_c, rendered.rgb)
+            skin_faces = comp[mesh.faces[:, 0]] == skin_c
+            visible = renderer.vertex_visibility(replace(mesh, faces=mesh.faces[skin_faces]), cam) & (comp == skin_c)
         p2, _ = contour_points(mask, EYE_ANGLES)
-        out.append(lift_points(p2, cam, mesh.vertices, vis, mask, "outside"))
+        out.append(lift_points(p2, cam, mesh.vertices, visible, mask, "outside"))
     return np.concatenate(out).astype(np.int64)
 
 
@@ -301,7 +372,7 @@ def find_face(
                 # Separate eye parts pin the eyes down geometrically; a detector trained on human
                 # photos only guesses them on a cartoon (it keeps the mouth and brows).
                 parts = eyeballs or eye_parts_at(mesh, renderer, got[2])
-                eyes = eyes_from_parts(mesh, renderer, parts) if parts else None
+                eyes = eyes_from_parts(mesh, renderer, parts, flat=not eyeballs) if parts else None
                 if eyes is not None:
                     ids, source = np.concatenate([eyes, ids[12:]]), source + " + eye parts"
                 return FaceLandmarks(ids, source, got[1], eyeballs)
