@@ -409,3 +409,24 @@ def test_schedule_compresses_warmup_and_decay_into_the_budget(monkeypatch):
     plain = vcdgs._Schedule(iterations=100, warm=20, deadline=None)  # steps only
     assert not plain.joint(plain.progress(19)) and plain.joint(plain.progress(20))
     assert abs(plain.joint_fraction(plain.progress(60)) - 0.5) < 1e-9
+
+
+def test_global_learning_rate_decays_over_the_warm_up_and_continues_in_the_joint_stage():
+    from t2bs.recon.config import OptimConfig
+    from t2bs.recon.vcdgs import _lr_factor
+
+    o = OptimConfig(lr_global_joint=0.1, lr_final_ratio=0.1)
+    # The global SE(3): full rate at the start, lr_global_joint at the warm-up's end, continuous into the joint stage,
+    # lr_global_joint * lr_final_ratio at the last step.
+    assert _lr_factor("global", False, 0.0, 0.0, o) == pytest.approx(1.0)
+    assert _lr_factor("global", False, 0.5, 0.0, o) == pytest.approx(0.1**0.5)
+    assert _lr_factor("global", False, 1.0, 0.0, o) == pytest.approx(_lr_factor("global", True, 1.0, 0.0, o))
+    assert _lr_factor("global", True, 1.0, 1.0, o) == pytest.approx(0.01)
+    # The networks: constant in the warm-up (they do not train there), decaying to lr_final_ratio in the joint stage.
+    for group in ("deform", "refine"):
+        assert _lr_factor(group, False, 0.7, 0.0, o) == 1.0
+        assert _lr_factor(group, True, 1.0, 0.5, o) == pytest.approx(0.1**0.5)
+    # lr_global_joint = 1: the schedule before the option (one decay over the joint stage for every group).
+    old = OptimConfig(lr_global_joint=1.0)
+    assert _lr_factor("global", False, 0.9, 0.0, old) == 1.0
+    assert _lr_factor("global", True, 1.0, 0.5, old) == pytest.approx(0.1**0.5)

@@ -68,6 +68,7 @@ class OptimConfig:
     canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)
     lr_deform: float = 2e-3  # Adam learning rate of the DeformMLP / per-Gaussian MLP
     lr_global: float = 5e-3  # Adam learning rate of the global SE(3) tables
+    lr_global_joint: float = 1.0  # < 1: the global SE(3)'s rate decays over the warm-up to this fraction (subtle faces)
     lr_refine: float = 1e-3  # Adam learning rate of the RefineMLP
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
 
@@ -228,11 +229,18 @@ class VCDGSConfig:
         "lr_global",
         "lr_refine",
         "lr_final_ratio",
+        "lr_global_joint",
         "huber_delta",
         "flatness",
         "track_delta",
     )
-    _FRACTIONS = ("canonical_fraction", "lr_final_ratio", "hidden_pick_side_fraction", "hidden_pick_even")  # <= 1
+    _FRACTIONS = (
+        "canonical_fraction",
+        "lr_final_ratio",
+        "lr_global_joint",
+        "hidden_pick_side_fraction",
+        "hidden_pick_even",
+    )  # <= 1
 
     def _check_ranges(self) -> None:
         """Every number finite and in range: NaN or a negative count from --set would otherwise train
