@@ -45,7 +45,7 @@ def main(
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.extract import canonical_vertices
-    from t2bs.recon.vcdgs import _lr_factor, build_model, prepare_data
+    from t2bs.recon.vcdgs import _lr_factor, _Schedule, build_model, prepare_data
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -75,6 +75,7 @@ def main(
         groups["global"] = (list(model.global_se3.parameters()), o.lr_global)
     opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
     warm = min(o.global_iters, o.iterations - 1) if model.global_se3 is not None else 0
+    clock = _Schedule(o.iterations, warm, None)
     gen = torch.Generator().manual_seed(cfg.runtime.seed)
 
     def loss_of(t: torch.Tensor) -> torch.Tensor:
@@ -83,14 +84,14 @@ def main(
 
     warm_loss = None
     for step in range(o.iterations):
-        joint = step >= warm
+        p = clock.progress(step)
+        joint = clock.joint(p)
         if joint and warm_loss is None:
             with torch.no_grad():
                 warm_loss = float(loss_of(torch.arange(frames)))
         for k, opt in opts.items():
             for g in opt.param_groups:
-                frac = (step - warm) / max(o.iterations - warm, 1) if joint else 0.0
-                g["lr"] = groups[k][1] * _lr_factor(k, joint, min(step / max(warm, 1), 1.0), frac, o)
+                g["lr"] = groups[k][1] * _lr_factor(k, joint, clock.warm_fraction(p), clock.joint_fraction(p), o)
         t = torch.randint(0, frames, (o.batch_size,), generator=gen)
         loss = loss_of(t)
         for opt in opts.values():

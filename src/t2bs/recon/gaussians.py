@@ -24,7 +24,6 @@ from t2bs.geometry.mesh import (
     mesh_edges,
     vertex_normals,
     weld_index,
-    welded_edges,
 )
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
 
@@ -251,12 +250,12 @@ def near_open_edges(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     0.74 with the neighbours, the same with two rows), else 0. Counted on welded vertices (``weld_index``): where an
     exporter split the surface at a UV seam, the seam is not a border."""
     node, first = weld_index(vertices)
-    e = welded_edges(node, faces)
     f = node[np.asarray(faces, np.int64)]
-    used = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
-    used, count = np.unique(used[used[:, 0] != used[:, 1]], axis=0, return_counts=True)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
+    # the welded edges (as ``welded_edges``) with how many triangles use each
+    e, count = np.unique(e[e[:, 0] != e[:, 1]], axis=0, return_counts=True)
     rim = np.zeros(len(first), bool)
-    rim[used[count == 1].ravel()] = True
+    rim[e[count == 1].ravel()] = True
     out = rim.copy()
     out[e[:, 0][rim[e[:, 1]]]] = True
     out[e[:, 1][rim[e[:, 0]]]] = True

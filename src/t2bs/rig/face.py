@@ -320,6 +320,7 @@ def eyes_from_parts(
     if flat:
         comp = welded_components(mesh.vertices, mesh.faces)
         seen_comp = np.where(seen_vertex >= 0, comp[np.maximum(seen_vertex, 0)], -1)
+        skin_visible: dict[int, np.ndarray] = {}  # per skin part: both eyes usually lie on one, rendered once
     out = []
     for side in ("right", "left"):  # 36-41 then 42-47
         mask = largest_component(np.isin(seen_vertex, eyeballs[side]))
@@ -333,8 +334,11 @@ def eyes_from_parts(
                 return None
             skin_c = int(np.bincount(seen_comp[ring]).argmax())
             mask = painted_eye(mask, seen_comp, skin_c, rendered.rgb)
-            skin_faces = comp[mesh.faces[:, 0]] == skin_c
-            visible = renderer.vertex_visibility(replace(mesh, faces=mesh.faces[skin_faces]), cam) & (comp == skin_c)
+            if skin_c not in skin_visible:
+                skin_faces = comp[mesh.faces[:, 0]] == skin_c
+                skin_mesh = replace(mesh, faces=mesh.faces[skin_faces])
+                skin_visible[skin_c] = renderer.vertex_visibility(skin_mesh, cam) & (comp == skin_c)
+            visible = skin_visible[skin_c]
         p2, _ = contour_points(mask, EYE_ANGLES)
         out.append(lift_points(p2, cam, mesh.vertices, visible, mask, "outside"))
     return np.concatenate(out).astype(np.int64)
