@@ -124,6 +124,7 @@ class RuntimeConfig:
     seed: int = 0  # every random choice (sampling, initialisation) derives from it
     device: str = "auto"  # auto (cuda if available) | cpu | cuda | cuda:N
     compile: bool = False  # torch.compile the step's deformation and losses (the rasterizer stays eager)
+    cuda_graphs: bool = False  # with compile, on CUDA: replay the step as CUDA graphs (H200 paper step 58.7 -> 22.0 ms)
     threads: int = 2  # torch CPU threads; fixed, so that one config gives the same numbers everywhere (0 = torch's)
     checkpoint_every: int = 200  # steps between resumable checkpoints (0 = never)
 

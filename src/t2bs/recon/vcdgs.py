@@ -464,9 +464,11 @@ def train(
     _train_only_global(model, not joint)
     history["steps_run"] = start
     terms_fn = step_terms
+    graphs = cfg.runtime.compile and cfg.runtime.cuda_graphs and dev.type == "cuda"
     if cfg.runtime.compile:
         # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
-        terms_fn = torch.compile(step_terms, dynamic=False)
+        # reduce-overhead records each compiled part once as a CUDA graph and replays it: the step is launch-bound.
+        terms_fn = torch.compile(step_terms, dynamic=False, mode="reduce-overhead" if graphs else None)
     rest_seen = None  # [V, N, 3] the rest pose as each view sees it, for the track term (refreshed)
     for step in bar:
         p = clock.progress(step)
@@ -491,6 +493,8 @@ def train(
             and (rest_seen is None or step % cfg.tracks.track_refresh == 0)
         ):
             rest_seen = _rest_as_seen(model, data.views)
+        if graphs:  # the previous step's graph outputs are consumed: their buffers may be reused
+            torch.compiler.cudagraph_mark_step_begin()
         terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, rest_seen=rest_seen)
         img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
         loss = sum(terms.values())
