@@ -8,7 +8,7 @@
 #                  glcontext, gsplat 1.5.3 source wheel: built just in time for the GPU)
 #   .gl/           Debian's libegl1/libgl1/libglvnd0/... (headless OpenGL for the mesh renderer)
 #   .carry/assets/ facecap.glb (the shared asset)
-# and writes JSON and logs to $OUT. Results: docs/BENCHMARKS.md.
+# and writes JSON and logs ($OUT/logs.txt) to $OUT. Results: docs/BENCHMARKS.md.
 set -u
 OUT=${OUT:-/tmp/gpu_check}
 BUDGET=${BUDGET:-540}
@@ -31,10 +31,13 @@ step() {  # name, most seconds, command...: runs under min(most, what is left), 
   local limit=$(( most < left ? most : left ))
   if [ "$limit" -lt 20 ]; then echo "== $name skipped: ${left} s left" | tee -a "$OUT/summary.txt"; return 1; fi
   local t0=$(date +%s)
-  timeout "$limit" "$@" >"$OUT/$name.log" 2>&1
+  local log=/tmp/gpu_check_logs/$name.log  # all logs end in one file: the device tool returns at most 8 files
+  mkdir -p /tmp/gpu_check_logs
+  timeout "$limit" "$@" >"$log" 2>&1
   local rc=$?
   echo "== $name rc=$rc $(( $(date +%s) - t0 )) s (limit $limit)" | tee -a "$OUT/summary.txt"
-  grep -E "^(quick|paper) |passed|failed|skipping cudagraphs|rows|full|error|Error" "$OUT/$name.log" | grep -v Warning | tail -6
+  { echo "===== $name"; cat "$log"; } >>"$OUT/logs.txt"
+  grep -E "^(quick|paper) |passed|failed|skipping cudagraphs|rows|full|error|Error" "$log" | grep -v Warning | tail -6
   return $rc
 }
 
@@ -44,26 +47,25 @@ from gsplat.cuda._backend import _C
 print('gsplat kernels', _C is not None)
 from t2bs.render.mesh_renderer import MeshRenderer
 with MeshRenderer() as r: print('GL', r.ctx.info['GL_RENDERER'])
-" || { tail -20 "$OUT/setup.log"; exit 1; }
-tail -2 "$OUT/setup.log"
-
-SC="python3 benchmarks/step_cost.py --device cuda --presets paper --stages joint --timed-steps 100"
-step eager 90 $SC --json "$OUT/step_eager.json"
-step graphs 150 $SC --set compile=true --set cuda_graphs=true --json "$OUT/step_graphs.json"
-step compiled 120 $SC --set compile=true --json "$OUT/step_compiled.json"
+" || { tail -20 /tmp/gpu_check_logs/setup.log; exit 1; }
+tail -2 /tmp/gpu_check_logs/setup.log
 
 # The CUDA tests (gsplat against the C++ CPU path, the global stage and two-frame reconstruction on CUDA, the
 # CUDA-graph step against the eager one).
-step tests 100 python3 -m pytest -q -p no:cacheprovider tests/test_splat.py tests/test_recon.py tests/test_recon_step.py \
+step tests 200 python3 -m pytest -q -p no:cacheprovider tests/test_splat.py tests/test_recon.py tests/test_recon_step.py \
   -k "cuda or gsplat"
 
+# 2026-11-26 (H200): compile=true without graphs did not finish within 120 s, so it is left out.
+SC="python3 benchmarks/step_cost.py --device cuda --presets paper --stages joint --timed-steps 100"
+step eager 90 $SC --json "$OUT/step_eager.json"
+step graphs 150 $SC --set compile=true --set cuda_graphs=true --json "$OUT/step_graphs.json"
 
-# The fastest of the three for the paper preset on facecap, mouth wide, clean grid, under a wall-time cap on the
+# The faster of the two for the paper preset on facecap, mouth wide, clean grid, under a wall-time cap on the
 # training (its 60k steps do not fit a call; grid, tracks, static fit and hidden-part pick come on top).
 mode=$(python3 - "$OUT" <<'EOF'
 import json, sys
 from pathlib import Path
-best, sets = None, {"eager": "", "graphs": "--set compile=true --set cuda_graphs=true", "compiled": "--set compile=true"}
+best, sets = None, {"eager": "", "graphs": "--set compile=true --set cuda_graphs=true"}
 for name in sets:
     f = Path(sys.argv[1]) / f"step_{name}.json"
     if f.exists() and f.stat().st_size:
