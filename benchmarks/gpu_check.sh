@@ -25,7 +25,7 @@ export T2BS_SHARED_ASSETS=$PWD/.carry/assets
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 -c "import torch; print('torch', torch.__version__)" | tee -a "$OUT/gpu.txt"
 
-step() {  # name, most seconds, command...: runs under min(most, what is left), logs to $OUT/name.log
+step() {  # name, most seconds, command...: runs under min(most, what is left), its log appended to $OUT/logs.txt
   local name=$1 most=$2; shift 2
   local left=$(( END - $(date +%s) ))
   local limit=$(( most < left ? most : left ))

@@ -45,7 +45,7 @@ def main(
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.extract import canonical_vertices
-    from t2bs.recon.vcdgs import _lr_factor, _Schedule, build_model, prepare_data
+    from t2bs.recon.vcdgs import _lr_factor, _Schedule, build_model, param_groups, prepare_data, warm_up_steps
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -70,11 +70,9 @@ def main(
     model, _ = build_model(mesh, data, cfg)
     target = torch.as_tensor(truth, dtype=torch.float32)
     frames, cv, o = target.shape[0], data.canonical_view, cfg.optim
-    groups = {"deform": (list(model.deform.parameters()), o.lr_deform)}
-    if model.global_se3 is not None:
-        groups["global"] = (list(model.global_se3.parameters()), o.lr_global)
+    groups = param_groups(model, o)  # the refine group gets no gradient here (refine=False): Adam skips it
     opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
-    warm = min(o.global_iters, o.iterations - 1) if model.global_se3 is not None else 0
+    warm = warm_up_steps(model, o)
     clock = _Schedule(o.iterations, warm, None)
     gen = torch.Generator().manual_seed(cfg.runtime.seed)
 

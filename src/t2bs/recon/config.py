@@ -217,6 +217,8 @@ class VCDGSConfig:
         o = self.optim
         if o.iterations < 1 or o.global_iters < 0 or o.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
+        if self.runtime.cuda_graphs and not self.runtime.compile:
+            raise UserError("cuda_graphs replays the compiled step: set compile=true with it")
         h = self.hidden_parts
         if h.hidden_pick_clusters < 1 or h.hidden_pick_views < 1:
             raise UserError("hidden_pick_clusters and hidden_pick_views must be >= 1")

@@ -355,6 +355,24 @@ def _lr_factor(group: str, joint: bool, warm_fraction: float, joint_fraction: fl
     return optim.lr_global_joint * decay if joint else optim.lr_global_joint**warm_fraction
 
 
+def param_groups(model: VCDGSModel, optim) -> dict[str, tuple[list, float]]:
+    """The parameters ``train`` optimises, by group (deform, global, refine: the names ``_lr_factor`` knows), each
+    with its base learning rate from ``optim`` (config.optim)."""
+    groups = {"deform": (list(model.deform.parameters()), optim.lr_deform)}
+    if model.global_se3 is not None:
+        groups["global"] = (list(model.global_se3.parameters()), optim.lr_global)
+    if model.refine is not None:
+        groups["refine"] = (list(model.refine.parameters()), optim.lr_refine)
+    return groups
+
+
+def warm_up_steps(model: VCDGSModel, optim) -> int:
+    """Steps of the global-only warm-up: ``optim.global_iters``, none without a global SE(3), and at least one joint
+    step always left."""
+    warm = optim.global_iters if model.global_se3 is not None else 0
+    return min(warm, optim.iterations - 1) if optim.iterations > 1 else 0
+
+
 @torch.compiler.disable
 def _render_uncompiled(*args):
     """``render``, kept out of a compiled step (config.runtime.compile): the rasterizers are C++/CUDA kernels already, and
@@ -435,15 +453,10 @@ def train(
     w, h = data.size
     perceptual = PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights).to(dev)
     gen = torch.Generator().manual_seed(cfg.runtime.seed)
-    groups = {"deform": (list(model.deform.parameters()), cfg.optim.lr_deform)}
-    if model.global_se3 is not None:
-        groups["global"] = (list(model.global_se3.parameters()), cfg.optim.lr_global)
-    if model.refine is not None:
-        groups["refine"] = (list(model.refine.parameters()), cfg.optim.lr_refine)
+    groups = param_groups(model, cfg.optim)
     # fused: one kernel per optimiser step instead of ~10 operators per parameter tensor (CPU and CUDA).
     opts = {k: torch.optim.Adam(p, lr=lr, fused=True) for k, (p, lr) in groups.items()}
-    warm = cfg.optim.global_iters if model.global_se3 is not None else 0
-    warm = min(warm, cfg.optim.iterations - 1) if cfg.optim.iterations > 1 else 0
+    warm = warm_up_steps(model, cfg.optim)
     history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
     start = 0
     if checkpoint is not None and checkpoint.exists():
@@ -464,7 +477,7 @@ def train(
     _train_only_global(model, not joint)
     history["steps_run"] = start
     terms_fn = step_terms
-    graphs = cfg.runtime.compile and cfg.runtime.cuda_graphs and dev.type == "cuda"
+    graphs = cfg.runtime.cuda_graphs and dev.type == "cuda"  # validate(): cuda_graphs needs compile
     if cfg.runtime.compile:
         # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
         # reduce-overhead records each compiled part once as a CUDA graph and replays it: the step is launch-bound.
