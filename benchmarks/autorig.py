@@ -176,8 +176,15 @@ def bench_one(spec: str, renderer, user_landmarks: bool = False) -> tuple[dict, 
     return out, (mesh, ref), rig
 
 
-def sheet(items, renderer, path: Path, size: int = 200) -> None:
-    """Rows: assets; columns: neutral, then reference / auto for jaw open, left blink, smile."""
+# Assets whose renders may go into the repository's pictures: the turtle (Apache-2.0, jeeliz) and vipe_hero_head
+# (CC-BY, "VIPE Hero #307" by Polygonal Mind); facecap's licence allows internal testing only.
+REDISTRIBUTABLE = {"turtle", "vipe_hero_head"}
+
+
+def sheet(items, renderer, path: Path, size: int = 240, fov_y_deg: float = 22.0) -> None:
+    """Rows: assets (procedural, and shared ones in REDISTRIBUTABLE); columns: neutral, then reference / auto for
+    jaw open, left blink, smile (both tiles blank where the reference rig has no such shape). ``fov_y_deg``: a
+    closer frame than the orbit's 30 degrees, so the lids show."""
     from t2bs.geometry.camera import frontal_camera
     from t2bs.project import write_image
 
@@ -186,13 +193,18 @@ def sheet(items, renderer, path: Path, size: int = 200) -> None:
         ("eyeBlinkLeft", ["eyeBlinkLeft"]),
         ("smile (both sides)", ["mouthSmileLeft", "mouthSmileRight"]),
     ]
-    cam = frontal_camera(size)
+    cam = frontal_camera(size, fov_y_deg=fov_y_deg)
     rows = []
     for res, (mesh, ref), rig in items:
+        if not (res["asset"].startswith("procedural:") or res["asset"] in REDISTRIBUTABLE):
+            continue
         tiles = [renderer.render(mesh, cam, shading="lambert").rgb]
         for comp, auto in cols:
             row = res["comparisons"].get(comp)
-            refd = sum(ref[n] for n in row["reference"].split("+")) if row else np.zeros_like(mesh.vertices)
+            if row is None:
+                tiles += [np.ones_like(tiles[0])] * 2
+                continue
+            refd = sum(ref[n] for n in row["reference"].split("+"))
             autod = sum(rig.morph_targets[n] for n in auto if n in rig.morph_targets)
             tiles.append(renderer.render(mesh, cam, vertices=mesh.vertices + refd, shading="lambert").rgb)
             tiles.append(

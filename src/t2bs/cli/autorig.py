@@ -18,6 +18,14 @@ def autorig_command(
     ),
     facing: str = typer.Option("auto", help="Axis the face looks along in the file: auto, +z, -z, +x, -x."),
     keep: bool = typer.Option(False, "--keep", help="Keep the mesh's own morph targets next to the new ones."),
+    lid_meet: Optional[float] = typer.Option(
+        None,
+        "--lid-meet",
+        help="Where closed lids meet: 0 = at the lower lid, 1 = at the upper lid. Default by the eye: 0.2 over an "
+        "eyeball (a human blink), 0.4 over a flat or painted eye (both lids stretched alike).",
+    ),
 ) -> None:
     """Build a face rig on a static head mesh in seconds: jawOpen, eyeBlinkLeft, mouthSmileLeft, ... (ARKit names)."""
-    stage.run(out, stage.AutorigConfig(mesh_path=mesh_path, landmarks=landmarks, facing=facing, keep=keep))
+    stage.run(
+        out, stage.AutorigConfig(mesh_path=mesh_path, landmarks=landmarks, facing=facing, keep=keep, lid_meet=lid_meet)
+    )

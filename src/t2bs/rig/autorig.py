@@ -50,9 +50,9 @@ LOWER_LIP = {"left": 17, "mid": 18, "right": 19}
 @dataclass
 class AutoRigConfig:
     jaw_open: float = 0.8  # lower-lip travel of a full jawOpen along its arc, in mouth widths (ARKit 1 = fully open)
-    lid_meet: float = (
-        0.2  # where closed lids meet: 0 = at the lower lid, 1 = at the upper lid (human lower lids move little)
-    )
+    # Where closed lids meet (0 = at the lower lid, 1 = at the upper lid). None: by the eye, LID_MEET_ROUND over
+    # a round eye, the equal-strain line over a flat one (see ``lid_meet_line``).
+    lid_meet: float | None = None
     smile: float = 0.22  # mouth-corner travel of a full smile, in mouth widths
     frown: float = 0.12  # mouth-corner travel of a full frown, in mouth widths
     brow: float = 0.10  # brow travel, in inter-ocular distances
@@ -493,6 +493,24 @@ def _eye_is_round(
     return round_eye, info
 
 
+# Over a round eye closed lids meet at 0.2 of the opening's height (angle about the ball) from the lower lid:
+# a human lower lid moves little (facecap's artist blink; 0.35 before it was measured there).
+LID_MEET_ROUND = 0.2
+
+
+def lid_meet_line(round_eye: bool, r_upper: float, r_lower: float) -> float:
+    """Where the closed lids meet, 0 = at the lower lid, 1 = at the upper lid.
+
+    Round eye: LID_MEET_ROUND, the human lid over its eyeball. A flat eye (painted, a disc, a socket) has no
+    ball and no anatomy to follow: each lid gives way in proportion to the skin that moves with it, so the
+    two are stretched alike: travel_upper / r_upper = travel_lower / r_lower, i.e. r_lower / (r_upper + r_lower)
+    of the height (0.4 with the lids' falloff radii). ``r_upper`` / ``r_lower``: those radii, any unit.
+    """
+    if round_eye:
+        return LID_MEET_ROUND
+    return r_lower / (r_upper + r_lower)
+
+
 def _lids(
     f: _Face,
     surf: Surface,
@@ -533,7 +551,10 @@ def _lids(
         raise UserError(
             f"landmarks: the {side} eye's upper lid points (37-38 / 43-44) are not above its lower lid points"
         )
-    th_m = th_l + config.lid_meet * (th_u - th_l)
+    # Anatomy: the moving upper lid spans lash line to crease (about a third of the eye's width), the lower less.
+    r_u, r_l = 0.45 * we * config.falloff, 0.3 * we * config.falloff
+    meet = lid_meet_line(round_eye, r_u, r_l) if config.lid_meet is None else config.lid_meet
+    th_m = th_l + meet * (th_u - th_l)
     eye_h = float(np.mean(np.linalg.norm(pts[[1, 2]] - pts[[5, 4]], axis=1)))
 
     def margin(order):
@@ -549,8 +570,6 @@ def _lids(
 
     up_seeds, up_prof = margin([0, 1, 2, 3])
     lo_seeds, lo_prof = margin([0, 5, 4, 3])
-    # Anatomy: the moving upper lid spans lash line to crease (about a third of the eye's width), the lower less.
-    r_u, r_l = 0.45 * we * config.falloff, 0.3 * we * config.falloff
     d_u, src_u = surf.distance(up_seeds, limit=2 * r_u)
     d_l, src_l = surf.distance(lo_seeds, limit=2 * r_u)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
@@ -598,7 +617,7 @@ def _lids(
         off[idx] = moved - v[idx]
         return off
 
-    info = {"lids": "turn about the eyeball" if round_eye else "slide (flat eye)", **shape}
+    info = {"lids": "turn about the eyeball" if round_eye else "slide (flat eye)", **shape, "lid_meet": round(meet, 3)}
     if round_eye:
         info.update(
             centre=[round(float(x), 5) for x in centre],

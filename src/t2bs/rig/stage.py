@@ -16,7 +16,7 @@ import numpy as np
 
 from t2bs.errors import UserError
 
-AUTORIG_VERSION = "t2bs-autorig-3"  # bump when the deformers change what a rig holds
+AUTORIG_VERSION = "t2bs-autorig-4"  # bump when the deformers change what a rig holds
 
 
 @dataclass
@@ -27,6 +27,7 @@ class AutorigConfig:
     landmarks: Path | None = None  # JSON with 20 vertex_ids (68-point order 36-47, 60-67), optional named ids
     facing: str = "auto"  # axis the face looks along in the file: auto, +z, -z, +x, -x
     keep: bool = False  # keep the mesh's own morph targets next to the new ones
+    lid_meet: float | None = None  # where closed lids meet, 0 = lower lid .. 1 = upper lid (None: by the eye)
 
 
 @dataclass
@@ -68,6 +69,7 @@ def run(out: str | os.PathLike, config: AutorigConfig) -> AutorigResult:
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.geometry.mesh import detect_facing, normalize
     from t2bs.project import write_json
+    from t2bs.rig.autorig import AutoRigConfig
 
     out, mesh_path = Path(out), Path(config.mesh_path)
     landmarks = None if config.landmarks is None else Path(config.landmarks)
@@ -75,12 +77,18 @@ def run(out: str | os.PathLike, config: AutorigConfig) -> AutorigResult:
         raise UserError(f"-o must name a .glb file, got {out}")
     if not mesh_path.is_file():
         raise UserError(f"{mesh_path}: no such mesh file")
+    if config.lid_meet is not None and not 0.0 <= config.lid_meet <= 1.0:
+        raise UserError(
+            f"--lid-meet must lie in [0, 1] (0 = at the lower lid, 1 = at the upper), got {config.lid_meet}"
+        )
     original = load_mesh(mesh_path)
     facing = config.facing
     if facing == "auto":
         facing = "-z" if mesh_path.suffix.lower() == ".vrm" else detect_facing(original)
     canon, transform = normalize(replace(original, morph_targets={}), facing)
-    rig, seconds = rig_canonical(canon, landmarks, source_name=str(mesh_path))
+    rig, seconds = rig_canonical(
+        canon, landmarks, source_name=str(mesh_path), config=AutoRigConfig(lid_meet=config.lid_meet)
+    )
     # Offsets back to the file's frame: canonical = scale * R @ x + t, so an offset d_c is R^T d_c / scale.
     rot, scale = np.asarray(transform["rotation"]), float(transform["scale"])
     morphs = dict(original.morph_targets) if config.keep else {}
