@@ -145,7 +145,8 @@ def run_case(
                     torch.cuda.reset_peak_memory_stats()
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
-                extra = {"steps": int(res.history.get("steps_run", 0))}
+                # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
+                extra = {"steps": int(res.history.get("steps_run", 0)), "expression_shapes": res.expression["shapes"]}
                 if cuda:
                     extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)

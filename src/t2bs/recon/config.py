@@ -57,6 +57,15 @@ class ModelConfig:
     time_freqs: int = 5  # Fourier frequencies of normalised time
     view_freqs: int = 3  # Fourier frequencies of the normalised view index
     view_residual_static: bool = True  # view residuals depend on the view only (False: on (view, time), the paper's)
+    # Auto-rig shapes (ARKit names) whose per-frame weights the fit also learns, under the networks' motion (ours,
+    # recon/expression_basis.py; () = the paper's model)
+    expression_shapes: tuple[str, ...] = (
+        "eyeBlinkLeft",
+        "eyeBlinkRight",
+        "jawOpen",
+        "mouthSmileLeft",
+        "mouthSmileRight",
+    )
 
 
 @dataclass
@@ -70,6 +79,7 @@ class OptimConfig:
     lr_global: float = 5e-3  # Adam learning rate of the global SE(3) tables
     lr_global_joint: float = 1.0  # < 1: the global SE(3)'s rate decays over the warm-up to this fraction (subtle faces)
     lr_refine: float = 1e-3  # Adam learning rate of the RefineMLP
+    lr_expression: float = 0.05  # Adam learning rate of the expression weights (DCT coefficients over the frames)
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
 
 
@@ -161,6 +171,7 @@ class VCDGSConfig:
 
     def __post_init__(self):
         self.data.holdout_views = tuple(self.data.holdout_views)
+        self.model.expression_shapes = tuple(self.model.expression_shapes)
 
     def replace(self, **fields) -> "VCDGSConfig":
         """A copy with ``fields`` changed: any field of the tree by its name (``knn=4``) or ``method``.
@@ -187,6 +198,7 @@ class VCDGSConfig:
         """The tree as plain JSON types: {"method": ..., section: {field: value}}."""
         d = asdict(self)
         d["data"]["holdout_views"] = list(self.data.holdout_views)
+        d["model"]["expression_shapes"] = list(self.model.expression_shapes)
         return d
 
     @classmethod
@@ -219,6 +231,13 @@ class VCDGSConfig:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
         if self.runtime.cuda_graphs and not self.runtime.compile:
             raise UserError("cuda_graphs replays the compiled step: set compile=true with it")
+        from t2bs.face.arkit import ARKIT_NAMES
+
+        unknown = [n for n in self.model.expression_shapes if n not in ARKIT_NAMES]
+        if unknown:
+            raise UserError(
+                f"expression_shapes: {', '.join(unknown)} not ARKit shape names (e.g. eyeBlinkLeft, jawOpen)"
+            )
         h = self.hidden_parts
         if h.hidden_pick_clusters < 1 or h.hidden_pick_views < 1:
             raise UserError("hidden_pick_clusters and hidden_pick_views must be >= 1")
@@ -231,6 +250,7 @@ class VCDGSConfig:
         "lr_deform",
         "lr_global",
         "lr_refine",
+        "lr_expression",
         "lr_final_ratio",
         "lr_global_joint",
         "huber_delta",
@@ -328,14 +348,15 @@ _TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 
 def _parse_value(name: str, kind, text: str):
-    """``text`` as a value of the field type ``kind`` (int, float, bool, str or tuple[int, ...])."""
+    """``text`` as a value of the field type ``kind`` (int, float, bool, str, tuple[int, ...] or tuple[str, ...])."""
     try:
         if kind is bool and text.lower() in _TRUE + _FALSE:
             return text.lower() in _TRUE
         if kind in (int, float, str):
             return kind(text)
         if typing.get_origin(kind) is tuple:
-            return tuple(int(x) for x in text.split(",") if x.strip())
+            item = typing.get_args(kind)[0]
+            return tuple(item(x.strip()) for x in text.split(",") if x.strip())
     except ValueError:
         pass
     shown = text if len(text) <= 40 else text[:40] + f"... ({len(text)} characters)"

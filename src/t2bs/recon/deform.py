@@ -196,6 +196,7 @@ class VCDGSModel(nn.Module):
         face_log_scale=None,
         ring=None,
         ring_weights=None,
+        expression_basis=None,
     ):
         super().__init__()
         f32 = torch.float32
@@ -258,7 +259,31 @@ class VCDGSModel(nn.Module):
             "pe_points", fourier(self.cp if self.use_lbs else self.means, cfg.model.pos_freqs), persistent=False
         )
         self.register_buffer("pe_means", fourier(self.means, cfg.model.refine_pos_freqs), persistent=False)
+        # Expression basis (recon/expression_basis.py): J shapes [J, N, 3] added to the rest pose before the skinning,
+        # with per-frame weights as coefficients on the DCT basis over the frames (as GlobalSE3: every step moves
+        # every frame coherently); frame 0 is the rest pose.
+        self.register_buffer(
+            "expression_basis", None if expression_basis is None else torch.as_tensor(expression_basis, dtype=f32)
+        )
+        self.expression_coef = None
+        if expression_basis is not None:
+            self.register_buffer("expression_dct", dct_basis(frames), persistent=False)
+            self.expression_coef = nn.Parameter(torch.zeros(frames, len(expression_basis)))
         self.radius = float(self.means.norm(dim=-1).mean())  # mean distance from the origin: rotation -> motion
+
+    def expression_weights(self) -> torch.Tensor:
+        """[T, J] weight of each expression shape per frame (0 at frame 0); [T, 0] without a basis."""
+        if self.expression_coef is None:
+            return self.means.new_zeros(self.frames, 0)
+        w = self.expression_dct @ self.expression_coef
+        return w - w[:1]
+
+    def rest_at(self, t_idx: torch.Tensor) -> torch.Tensor:
+        """The rest positions the deformation starts from: [N, 3] means, or [B, N, 3] with the expression basis at
+        each frame's weights."""
+        if self.expression_coef is None:
+            return self.means
+        return self.means + torch.einsum("bj,jnc->bnc", self.expression_weights()[t_idx], self.expression_basis)
 
     def splats_at(self, x, q, scales, colors, face_colors=None) -> tuple:
         """The splats of vertices ``x`` [B, N, 3] with quats ``q`` [B, N, 4], ``scales``, ``colors`` [B, N, 3]: the
@@ -294,9 +319,10 @@ class VCDGSModel(nn.Module):
         (linear), colors [B, N, 3], plus the raw parts the regularisers need."""
         shared, res = self.control_transforms(v_idx, t_idx, use_view)
         local = shared + res  # [B, P, 6]
+        rest = self.rest_at(t_idx)
         if self.use_lbs:
             x, q = lbs(
-                self.means,
+                rest,
                 self.quats,
                 self.cp,
                 local[..., :3],
@@ -307,7 +333,7 @@ class VCDGSModel(nn.Module):
             )
         else:
             rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, N, 3, 3]: each Gaussian about itself
-            x = self.means[None] + local[..., 3:]
+            x = rest + local[..., 3:]
             q = roma.quat_product(roma.rotmat_to_unitquat(rot), self.quats[None].expand(len(t_idx), -1, -1))
         g_shared = g_res = None
         if self.global_se3 is not None:

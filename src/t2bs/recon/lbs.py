@@ -105,9 +105,9 @@ def lbs(
     weights: torch.Tensor,
     matrix: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """x [N, 3], q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3] (about p_k), neighbours/weights
-    [N, knn], optional ``matrix`` = blend_matrix(neighbours, weights, K) (faster, same result)
-    -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
+    """x [N, 3] (or [B, N, 3], a rest pose per batch item), q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3]
+    (about p_k), neighbours/weights [N, knn], optional ``matrix`` = blend_matrix(neighbours, weights, K) (faster,
+    same result) -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
     m, b, q = _blend(rotvec, trans, p, neighbours, weights, matrix)
     xt = matvec(m, x) + b
     return xt, matvec(quat_right_matrix(q_rest), q)

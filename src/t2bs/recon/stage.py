@@ -105,6 +105,8 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
         "track_chain": cfg.tracks.track_chain,  # tracks chained frame to frame where the direct flow fails
         "track_flow_size": cfg.tracks.track_flow_size,  # px the flow ran at (upsampled from the training images)
         "hidden_pick": result.hidden_pick,  # hidden parts' motion picked by render (HiddenPick.summary(); None: off)
+        # the expression basis (recon/expression_basis.py): auto-rig shapes used, where the face came from, weights
+        "expression_basis": result.expression,
         # share of (view, frame, vertex) entries with a valid optical-flow track
         "track_coverage": None if result.data.tracks is None else round(result.data.tracks.coverage(), 4),
         "first_train_loss": result.history.get("first_image_loss"),
@@ -124,9 +126,24 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     return m
 
 
+def _picked_landmarks(project: Project) -> Path | None:
+    """The user's face points (the viewer's picker or a copied --landmarks file), for the expression basis."""
+    from t2bs.rig.pick import PICKED
+
+    path = project.path("landmarks", PICKED)
+    return path if path.exists() else None
+
+
 def recon_job(project: Project, grid_dir: Path, cfg: VCDGSConfig, preview: bool = True) -> Job:
-    """The job of one video: keyed by the grid, the character and the settings."""
-    key = content_key(grid_dir, project.mesh_path, cfg.to_dict())
+    """The job of one video: keyed by the grid, the character and the settings (and, with an expression basis,
+    the auto rig's version and the user's face points)."""
+    basis = ()
+    if cfg.model.expression_shapes:
+        from t2bs.rig.stage import AUTORIG_VERSION
+
+        picked = _picked_landmarks(project)
+        basis = (AUTORIG_VERSION, *([picked] if picked else []))
+    key = content_key(grid_dir, project.mesh_path, cfg.to_dict(), *basis)
     return Job(
         key=key,
         name=f"recon/{grid_dir.name}",
@@ -165,7 +182,9 @@ def run_recon_job(
         )
     ckpt = project.path("recon", ".checkpoints", f"{Path(grid_dir).name}-{key}.pt")
     ckpt.parent.mkdir(parents=True, exist_ok=True)
-    result = reconstruct_grid(mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key)
+    result = reconstruct_grid(
+        mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key, landmarks_file=_picked_landmarks(project)
+    )
     metrics = job_metrics(result, mesh, grid, cfg)
     write_outputs(staging, mesh, grid, result, cfg, metrics, preview=preview)
     ckpt.unlink(missing_ok=True)

@@ -2,7 +2,8 @@
 
 Schedule: (1) fit the static Gaussians' scale/orientation (one per vertex plus one per face,
 texture colours) to renders of the static mesh (gaussians.py); (2) global-only warm-up: only
-T_global(v, t) is optimised (the paper: "we first fit the global transformation"); (3) joint
+T_global(v, t) is optimised (the paper: "we first fit the global transformation"), with the per-frame weights of
+the expression basis (ours, recon/expression_basis.py: auto-rig shapes added to the rest pose); (3) joint
 training of T_global, DeformMLP and RefineMLP. Each step renders a batch of random (view, time)
 pairs (a share of them at the canonical view, which defines the output) and minimises Huber
 (+ pyramid) + perceptual (+ silhouette) losses; (4) the output: the vertex Gaussians' centres at
@@ -110,6 +111,7 @@ class ReconResult:
     seconds: float = 0.0  # wall time of the reconstruction
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
     hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
+    expression: dict = field(default_factory=dict)  # the expression basis: shapes, landmarks, weights per frame
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
@@ -162,12 +164,13 @@ def static_mesh_targets(mesh: Mesh, cameras: list[Camera], shading: str = "lambe
 
 
 def build_model(
-    mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False
+    mesh: Mesh, data: TrainData, cfg: VCDGSConfig, static_targets=None, progress: bool = False, expression_basis=None
 ) -> tuple[VCDGSModel, StaticGaussians]:
     """Static Gaussians (fitted) + control points -> an untrained VCDGS model.
 
     ``static_targets``: (rgb [V, H, W, 3], mask [V, H, W]) renders of the static mesh from every
-    view of ``data`` (made with the mesh renderer when None)."""
+    view of ``data`` (made with the mesh renderer when None); ``expression_basis``: [J, N, 3] shapes whose
+    per-frame weights are learned too (recon/expression_basis.py), or None."""
     gs = init_static_gaussians(
         mesh, cfg.static_fit.flatness, cfg.static_fit.face_gaussians, cfg.static_fit.max_face_gaussians
     )
@@ -216,6 +219,7 @@ def build_model(
         gs.face_log_scale,
         gs.ring,
         gs.ring_weights,
+        expression_basis,
     )
     model.register_buffer("cp_neighbours", torch.as_tensor(cps.cp_neighbours))
     p = cps.positions
@@ -356,14 +360,21 @@ def _lr_factor(group: str, joint: bool, warm_fraction: float, joint_fraction: fl
 
 
 def param_groups(model: VCDGSModel, optim) -> dict[str, tuple[list, float]]:
-    """The parameters ``train`` optimises, by group (deform, global, refine: the names ``_lr_factor`` knows), each
-    with its base learning rate from ``optim`` (config.optim)."""
+    """The parameters ``train`` optimises, by group (deform, global, refine, expression: the names ``_lr_factor``
+    knows), each with its base learning rate from ``optim`` (config.optim)."""
     groups = {"deform": (list(model.deform.parameters()), optim.lr_deform)}
     if model.global_se3 is not None:
         groups["global"] = (list(model.global_se3.parameters()), optim.lr_global)
     if model.refine is not None:
         groups["refine"] = (list(model.refine.parameters()), optim.lr_refine)
+    if model.expression_coef is not None:
+        groups["expression"] = ([model.expression_coef], optim.lr_expression)
     return groups
+
+
+# What the warm-up trains: the head motion, and the expression weights with it, so that the head motion does not
+# take a blink's or a smile's image change as a small turn before anything else can explain it.
+WARM_UP_GROUPS = ("global", "expression")
 
 
 def warm_up_steps(model: VCDGSModel, optim) -> int:
@@ -423,8 +434,8 @@ def step_terms(
 
 
 def _train_only_global(model: VCDGSModel, only: bool) -> None:
-    """The warm-up optimises T_global alone: the other networks get no gradient then, so the backward
-    pass skips them (their optimisers do not step in the warm-up either way)."""
+    """The warm-up optimises T_global (and the expression weights, ``WARM_UP_GROUPS``) alone: the networks get no
+    gradient then, so the backward pass skips them (their optimisers do not step in the warm-up either way)."""
     for mod in (model.deform, model.refine):
         if mod is not None:
             mod.requires_grad_(not only)
@@ -514,11 +525,9 @@ def train(
         for o in opts.values():
             o.zero_grad(set_to_none=True)
         loss.backward()
-        if joint:
-            for o in opts.values():
+        for k, o in opts.items():
+            if joint or k in WARM_UP_GROUPS:
                 o.step()
-        elif "global" in opts:
-            opts["global"].step()
         if history["first_image_loss"] is None:
             history["first_image_loss"] = float(img)
         if step % 10 == 0 or step == cfg.optim.iterations - 1:
@@ -664,8 +673,12 @@ def reconstruct_grid(
     static_targets=None,
     checkpoint: Path | None = None,
     key: str = "",
+    landmarks_file: Path | None = None,
 ) -> ReconResult:
-    """The whole VCDGS job for one grid: data, static fit, control points, training, extraction."""
+    """The whole VCDGS job for one grid: data, static fit, expression basis, control points, training, extraction.
+
+    ``landmarks_file``: the user's 20 face points for the expression basis's auto rig (else the face is found on a
+    render of ``mesh``, which must be in the canonical frame)."""
     from t2bs.errors import UserError
 
     cfg.validate()
@@ -678,12 +691,15 @@ def reconstruct_grid(
     if cfg.runtime.threads > 0:
         torch.set_num_threads(cfg.runtime.threads)
     try:
-        return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key)
+        return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key, landmarks_file)
     finally:
         torch.set_num_threads(threads)
 
 
-def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key) -> ReconResult:
+def _reconstruct(
+    mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file
+) -> ReconResult:
+    from t2bs.recon.expression_basis import expression_basis
     from t2bs.recon.extract import canonical_vertices, smooth_displacements
 
     t0 = time.time()
@@ -704,15 +720,18 @@ def _reconstruct(mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, c
             agree_px=cfg.tracks.track_agree * side,
             flow_size=cfg.tracks.track_flow_size,
         )
-    model, _ = build_model(mesh, data, cfg, static_targets, progress)
+    basis, expression = expression_basis(mesh, cfg.model.expression_shapes, landmarks_file)
+    model, _ = build_model(mesh, data, cfg, static_targets, progress, basis)
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
     deadline = t0 + cfg.optim.time_budget_s - 5.0 if cfg.optim.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
+    if basis is not None:
+        expression["weights"] = np.round(model.expression_weights().detach().cpu().numpy(), 4).tolist()  # [T, J]
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
     pick = None
     if cfg.hidden_parts.hidden_pick:
         verts, pick = _pick_hidden(mesh, verts, data, cfg)
-    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"), pick)
+    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"), pick, expression)
 
 
 def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfig) -> tuple[np.ndarray, dict]:
@@ -774,6 +793,7 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
             sd.get("face_log_scale"),
             sd.get("splat_ring"),
             sd.get("splat_ring_weights"),
+            sd.get("expression_basis"),
         )
         model.register_buffer("cp_neighbours", sd["cp_neighbours"])
         model.load_state_dict(sd)

@@ -1,0 +1,55 @@
+"""The expression basis (our addition to VCDGS): a few auto-rig shapes whose per-frame weights the fit learns.
+
+The control points move a blink's lid only through an MLP shared by every point and a skinning that mixes lid and
+eyeball, and the photometric gradient of a 1-2 px lid is small next to the head motion's: trained that way, the
+lids and lip corners barely move (issue 37; docs/VCDGS_NOTES.md, "The expression basis"). An expression shape of the
+character's own auto rig (``t2bs.rig``: built from the static mesh, the face found by part labels or MediaPipe, no
+artist shape used) gives the fit a direction for the whole lid at once: its weight per frame is one number that every
+lid pixel pulls on, so the images and tracks move it where they cannot move 400 control points. The deformation
+networks keep learning on top of it (what the basis gets wrong, and every other motion).
+
+A character whose face is not found gets no basis: one warning line, and the fit runs on its control points alone.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from t2bs.errors import UserError
+from t2bs.geometry.mesh import Mesh
+
+
+def expression_basis(
+    mesh: Mesh, names: tuple[str, ...] | list[str], landmarks_file: Path | None = None, renderer=None
+) -> tuple[np.ndarray | None, dict]:
+    """The auto rig's shapes ``names`` (ARKit names) of ``mesh`` (canonical frame; its own morph targets are ignored).
+
+    -> (basis [J, N, 3] float32 offsets from the rest pose, or None; info for metrics.json: the shapes used, those the
+    rig could not make and why, where the face came from, or the reason there is no basis). ``landmarks_file``: the
+    user's 20 points (``t2bs autorig --landmarks``), else the face is found on a render."""
+    names = list(names)
+    if not names:
+        return None, {"shapes": []}
+    from t2bs.rig.stage import rig_canonical
+
+    try:
+        rig, seconds = rig_canonical(replace(mesh, morph_targets={}), landmarks_file, renderer=renderer)
+    except UserError as exc:
+        why = str(exc).split("; give them")[0]  # the landmark hint belongs to `t2bs autorig`, not here
+        print(f"warning: no expression basis, VCDGS runs on control points alone: {why}", file=sys.stderr, flush=True)
+        return None, {"shapes": [], "error": why}
+    have = [n for n in names if n in rig.morph_targets]
+    missing = {n: rig.missing.get(n, "not an auto-rig shape") for n in names if n not in rig.morph_targets}
+    info = {"shapes": have, "missing": missing, "landmarks": rig.landmarks.source, "seconds": round(seconds, 2)}
+    if not have:
+        print(
+            f"warning: no expression basis, VCDGS runs on control points alone: the auto rig made none of {names}",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None, info
+    return np.stack([rig.morph_targets[n] for n in have]).astype(np.float32), info

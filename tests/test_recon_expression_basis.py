@@ -1,0 +1,104 @@
+"""The expression basis (recon/expression_basis.py): auto-rig shapes whose per-frame weights VCDGS learns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from t2bs.errors import UserError
+from t2bs.eval.scenes import lid_scene
+from t2bs.recon.config import parse_options, preset
+from t2bs.recon.extract import canonical_vertices
+from t2bs.recon.vcdgs import build_model, param_groups, prepare_data
+
+
+def _lid_model(basis):
+    mesh, grid = lid_scene(frames=4, size=32, views=3)
+    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, time_budget_s=0.0)
+    data = prepare_data(grid, cfg)
+    torch.manual_seed(0)
+    model, _ = build_model(mesh, data, cfg, expression_basis=basis)
+    return mesh, model, cfg
+
+
+def test_the_basis_moves_the_rest_pose_by_each_frames_weights():
+    mesh, _, _ = _lid_model(None)
+    rng = np.random.default_rng(0)
+    basis = (0.01 * rng.standard_normal((2, mesh.num_vertices, 3))).astype(np.float32)
+    mesh, model, cfg = _lid_model(basis)
+    with torch.no_grad():
+        model.expression_coef.copy_(
+            torch.randn(model.expression_coef.shape, generator=torch.Generator().manual_seed(1))
+        )
+    w = model.expression_weights().detach().numpy()  # [T, J]
+    assert w.shape == (4, 2) and np.all(w[0] == 0)  # frame 0 is the rest pose
+    # Untrained networks and head motion are the identity: the canonical vertices are the rest pose plus the basis.
+    want = mesh.vertices[None] + np.einsum("tj,jnc->tnc", w, basis)
+    assert np.abs(canonical_vertices(model) - want).max() < 1e-5
+    # The weights train in the warm-up with the head motion, at their own rate.
+    assert param_groups(model, cfg.optim)["expression"] == ([model.expression_coef], cfg.optim.lr_expression)
+
+
+def test_no_basis_is_the_paper_model():
+    mesh, model, cfg = _lid_model(None)
+    assert model.expression_coef is None and model.expression_weights().shape == (4, 0)
+    assert "expression" not in param_groups(model, cfg.optim)
+    assert np.abs(canonical_vertices(model) - mesh.vertices[None]).max() < 1e-6
+
+
+def test_a_trained_model_with_a_basis_loads_back(tmp_path):
+    from t2bs.recon.vcdgs import load_trained_model
+
+    mesh, _, _ = _lid_model(None)
+    basis = np.full((1, mesh.num_vertices, 3), 0.01, np.float32)
+    _, model, cfg = _lid_model(basis)
+    with torch.no_grad():
+        model.expression_coef.fill_(0.5)
+    path = tmp_path / "state.pt"
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "config": cfg.to_dict(),
+            "views": model.views,
+            "frames": model.frames,
+            "canonical_view": model.canonical_view,
+        },
+        path,
+    )
+    loaded, _ = load_trained_model(path)
+    assert np.allclose(canonical_vertices(loaded), canonical_vertices(model), atol=1e-6)
+
+
+def test_expression_shapes_option_parses_and_checks_names():
+    assert parse_options(["expression_shapes=eyeBlinkLeft, jawOpen"]) == {
+        "expression_shapes": ("eyeBlinkLeft", "jawOpen")
+    }
+    assert parse_options(["expression_shapes="]) == {"expression_shapes": ()}
+    with pytest.raises(UserError, match="blink_left"):
+        preset("quick", expression_shapes=("blink_left",))
+    with pytest.raises(UserError, match="lr_expression"):
+        preset("quick", lr_expression=0.0)
+
+
+def test_a_head_without_a_face_gets_no_basis_and_says_so(capsys):
+    from t2bs.recon.expression_basis import expression_basis
+
+    mesh, _ = lid_scene(frames=2, size=32)  # a sphere with a lid: no eyes or mouth to find
+    basis, info = expression_basis(mesh, ("eyeBlinkLeft", "jawOpen"))
+    assert basis is None and info["shapes"] == [] and "no face found" in info["error"]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: no expression basis")
+    assert expression_basis(mesh, ()) == (None, {"shapes": []})  # none asked for: nothing tried
+
+
+def test_the_auto_rig_gives_a_procedural_head_its_shapes():
+    from t2bs.character.backends import generate
+    from t2bs.recon.expression_basis import expression_basis
+
+    mesh = generate("a cartoon fox with big ears", "procedural").mesh
+    basis, info = expression_basis(mesh, ("eyeBlinkLeft", "jawOpen"))
+    assert basis.shape == (2, mesh.num_vertices, 3) and info["shapes"] == ["eyeBlinkLeft", "jawOpen"]
+    moved = np.linalg.norm(basis, axis=-1) > 1e-6
+    lid, jaw = moved[0], moved[1]
+    assert 0 < lid.sum() < 0.2 * mesh.num_vertices and jaw.sum() > lid.sum()  # local shapes, the jaw the larger
