@@ -126,22 +126,15 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     return m
 
 
-def _picked_landmarks(project: Project) -> Path | None:
-    """The user's face points (the viewer's picker or a copied --landmarks file), for the expression basis."""
-    from t2bs.rig.pick import PICKED
-
-    path = project.path("landmarks", PICKED)
-    return path if path.exists() else None
-
-
 def recon_job(project: Project, grid_dir: Path, cfg: VCDGSConfig, preview: bool = True) -> Job:
     """The job of one video: keyed by the grid, the character and the settings (and, with an expression basis,
     the auto rig's version and the user's face points)."""
     basis = ()
     if cfg.model.expression_shapes:
+        from t2bs.rig.pick import picked_landmarks
         from t2bs.rig.stage import AUTORIG_VERSION
 
-        picked = _picked_landmarks(project)
+        picked = picked_landmarks(project)
         basis = (AUTORIG_VERSION, *([picked] if picked else []))
     key = content_key(grid_dir, project.mesh_path, cfg.to_dict(), *basis)
     return Job(
@@ -182,8 +175,10 @@ def run_recon_job(
         )
     ckpt = project.path("recon", ".checkpoints", f"{Path(grid_dir).name}-{key}.pt")
     ckpt.parent.mkdir(parents=True, exist_ok=True)
+    from t2bs.rig.pick import picked_landmarks
+
     result = reconstruct_grid(
-        mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key, landmarks_file=_picked_landmarks(project)
+        mesh, grid, cfg, progress=progress, checkpoint=ckpt, key=key, landmarks_file=picked_landmarks(project)
     )
     metrics = job_metrics(result, mesh, grid, cfg)
     write_outputs(staging, mesh, grid, result, cfg, metrics, preview=preview)

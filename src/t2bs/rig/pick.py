@@ -16,6 +16,14 @@ from t2bs.rig.face import NAMED_POINTS
 
 PICKED = "picked.json"  # DIR/landmarks/<this>: the user's points for the project's auto rig
 
+
+def picked_landmarks(project) -> Path | None:
+    """DIR/landmarks/picked.json of ``project`` (a t2bs.project.Project) when the user has picked points there (the
+    viewer's picker, or any --landmarks JSON copied there), else None: what every auto rig of the project uses."""
+    path = project.path("landmarks", PICKED)
+    return path if path.exists() else None
+
+
 # The 20 points in the 68-point order (36-47, 60-67): (slot, what to click). Right / left are the
 # character's own (right eye on -X, image left in the frontal view).
 SLOTS: list[tuple[str, str]] = [

@@ -122,12 +122,11 @@ def project_autorig(project, mesh, renderer=None):
     """
     from t2bs.geometry.io import load_mesh, save_mesh
     from t2bs.project import content_key, is_done, mark_done, read_json, write_json
-    from t2bs.rig.pick import PICKED
+    from t2bs.rig.pick import picked_landmarks
 
     # The user's points (the viewer's picker writes them there); landmarks/landmarks.json is the
     # landmarks stage's output, which rewrites it from the auto rig after the reconstruction.
-    lm_file = project.path("landmarks", PICKED)
-    lm_file = lm_file if lm_file.exists() else None
+    lm_file = picked_landmarks(project)
     folder = project.path("character")
     rig_path, info_path = folder / "autorig.glb", folder / "autorig.json"
     key = content_key(project.mesh_path, *([lm_file] if lm_file else []), AUTORIG_VERSION)
