@@ -121,6 +121,13 @@ def dct_basis(frames: int) -> torch.Tensor:
     return basis * torch.where(k == 0, 1.0, math.sqrt(2.0)) / math.sqrt(max(frames, 1))
 
 
+def frames_from_dct(basis: torch.Tensor, coef: torch.Tensor) -> torch.Tensor:
+    """basis [T, T] (``dct_basis``), coef [T, C] -> [T, C] per-frame values, frame 0 subtracted: the first column of a
+    grid is the static mesh, so whatever the coefficients say, frame 0 is the rest pose."""
+    values = basis @ coef
+    return values - values[:1]
+
+
 class GlobalSE3(nn.Module):
     """Global rigid motion per (v, t): a shared part per t plus a view residual per (v, t).
 
@@ -139,8 +146,7 @@ class GlobalSE3(nn.Module):
 
     def shared_table(self) -> torch.Tensor:
         """[T, 6] shared motion of every frame."""
-        g = self.basis @ self.shared
-        return g - g[:1]  # frame 0 is the static mesh (the grid's first column): its shared motion is the identity
+        return frames_from_dct(self.basis, self.shared)  # frame 0's shared motion is the identity
 
     def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, view_on: torch.Tensor):
         """-> (shared [B, 6], residual [B, 6])."""
@@ -275,8 +281,7 @@ class VCDGSModel(nn.Module):
         """[T, J] weight of each expression shape per frame (0 at frame 0); [T, 0] without a basis."""
         if self.expression_coef is None:
             return self.means.new_zeros(self.frames, 0)
-        w = self.expression_dct @ self.expression_coef
-        return w - w[:1]
+        return frames_from_dct(self.expression_dct, self.expression_coef)
 
     def rest_at(self, t_idx: torch.Tensor) -> torch.Tensor:
         """The rest positions the deformation starts from: [N, 3] means, or [B, N, 3] with the expression basis at
