@@ -36,12 +36,21 @@ def main(
     defects: str = typer.Option("clean", help="Simulated 4D-model defects: clean, mild, paper."),
     steps: int = typer.Option(300, help="Adam steps on the per-frame amplitudes."),
     seed: int = typer.Option(0, help="Seed of the static fit and the batches."),
+    direction: str = typer.Option(
+        "truth",
+        help="truth: one amplitude per frame of the true non-rigid motion. auto-rig: per-frame weights of the "
+        "expression basis's shapes (model.expression_shapes), posed by the true head motion, beside the weights "
+        "least squares gives them.",
+    ),
 ) -> None:
     """Fit one amplitude per frame of the true expression and print how much of it the images ask for."""
     import torch
 
     from t2bs.eval.bench_vcdgs import load_asset
-    from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
+    from t2bs.errors import UserError
+    from t2bs.geometry.metrics import expression_metrics
+    from t2bs.geometry.rigid import apply_motion, remove_motion, robust_rigid_motion
+    from t2bs.recon.expression_basis import expression_basis
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.gaussians import camera_tensors, render
     from t2bs.recon.losses import PerceptualLoss, image_loss
@@ -62,7 +71,26 @@ def main(
     head = apply_motion(*robust_rigid_motion(mesh.vertices, truth), mesh.vertices)  # [T, N, 3]
     nonrigid = torch.as_tensor(truth - head, dtype=torch.float32)
     head = torch.as_tensor(head, dtype=torch.float32)
-    amp = torch.zeros(data.frames, requires_grad=True)
+    if direction not in ("truth", "auto-rig"):
+        raise UserError(f"--direction {direction!r}: use truth or auto-rig")
+    if direction == "auto-rig":
+        basis, info = expression_basis(mesh, cfg.model.expression_shapes)
+        if basis is None:
+            raise UserError(f"no expression basis for {asset}: {info.get('error', info)}")
+        rot, trans = robust_rigid_motion(mesh.vertices, truth)
+        rot_t, trans_t = torch.as_tensor(rot, dtype=torch.float32), torch.as_tensor(trans, dtype=torch.float32)
+        rest, shapes = torch.as_tensor(mesh.vertices, dtype=torch.float32), torch.as_tensor(basis)
+        amp = torch.zeros(data.frames, len(basis), requires_grad=True)
+
+        def pose(t_idx, weights):  # the true head motion of frames t_idx applied to rest + weights . shapes
+            local = rest + torch.einsum("bj,jnk->bnk", weights, shapes)
+            return torch.einsum("bij,bnj->bni", rot_t[t_idx], local) + trans_t[t_idx, None]
+    else:
+        amp = torch.zeros(data.frames, requires_grad=True)
+
+        def pose(t_idx, weights):
+            return head[t_idx] + weights[:, None, None] * nonrigid[t_idx]
+
     opt = torch.optim.Adam([amp], lr=0.02)
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -72,7 +100,7 @@ def main(
     for _ in range(steps):
         v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, 0.0)
         b = len(t_idx)
-        x = head[t_idx] + amp[t_idx, None, None] * nonrigid[t_idx]
+        x = pose(t_idx, amp[t_idx])
         splats = model.splats_at(x, q.expand(b, -1, -1), s.expand(b, -1, -1), c.expand(b, -1, -1))
         out = render(*splats, vm[v_idx], ks[v_idx], w, h)
         target, mask = batch_targets(data, v_idx, t_idx)
@@ -82,6 +110,25 @@ def main(
         opt.step()
     fitted = amp.detach().numpy()
     weight = np.linalg.norm(nonrigid.numpy(), axis=-1).mean(1) ** 2
+    if direction == "auto-rig":  # the weights the images ask for, against those least squares gives (no images)
+        local = remove_motion(rot, trans, truth) - mesh.vertices  # [T, N, 3] the true motion seen from the head
+        flat = basis.reshape(len(basis), -1).T.astype(np.float64)  # [3N, J]
+        lsq = np.linalg.lstsq(flat, local.reshape(len(local), -1).T, rcond=None)[0].T  # [T, J]
+        all_frames = torch.arange(data.frames)
+        with torch.no_grad():
+            images = pose(all_frames, torch.as_tensor(fitted)).numpy()
+            squares = pose(all_frames, torch.as_tensor(lsq, dtype=torch.float32)).numpy()
+        peak = int(weight.argmax())
+        result = {
+            "shapes": info["shapes"],
+            "expr_ratio_images": round(expression_metrics(images, truth, mesh.vertices)["expr_ratio"], 3),
+            "expr_ratio_least_squares": round(expression_metrics(squares, truth, mesh.vertices)["expr_ratio"], 3),
+            "peak_weights_images": [round(float(x), 3) for x in fitted[peak]],
+            "peak_weights_least_squares": [round(float(x), 3) for x in lsq[peak]],
+        }
+        result["seconds"] = round(time.time() - t0, 1)
+        print(json.dumps({"asset": asset, "prompt": prompt, "defects": defects, **result}))
+        return
     print(
         json.dumps(
             {

@@ -45,6 +45,9 @@ def _args():
     )
     ap.add_argument("--src", default="", help="a t2bs src/ folder to measure instead of this checkout's")
     ap.add_argument("--json", default="", help="also write the JSON here")
+    ap.add_argument(
+        "--table", default="", help="also write the profiler's top 40 operators by device and by CPU time to this file"
+    )
     return ap.parse_args()
 
 
@@ -114,6 +117,12 @@ def main() -> None:
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
             with profile(activities=acts) as prof:
                 run(a.profile_steps)
+            if a.table:  # where a step's time goes (appended: one table per preset and stage)
+                averages = prof.key_averages()
+                with open(a.table, "a") as f:
+                    for sort in (["self_device_time_total"] if cuda else []) + ["self_cpu_time_total"]:
+                        f.write(f"== {pname} {stage}, {a.profile_steps} steps, by {sort}\n")
+                        f.write(averages.table(sort_by=sort, row_limit=40, max_name_column_width=60) + "\n")
             events = prof.events()
             ops = sum(1 for e in events if e.name.startswith("aten::"))
             kernels = sum(

@@ -128,3 +128,17 @@ def test_the_photometric_loss_alone_finds_a_shapes_weight_over_time():
     moving = truth > 0.5
     assert np.all(w[moving] >= 0.7 * truth[moving]) and np.all(w[moving] <= 1.1 * truth[moving]), (w, truth)
     assert np.argmax(w) in np.flatnonzero(truth == truth.max())
+
+
+def test_lid_vertices_are_those_a_blink_shape_moves_beyond_the_fraction():
+    from t2bs.recon.expression_basis import lid_vertices
+
+    basis = np.zeros((3, 6, 3), np.float32)
+    basis[0, :3, 1] = [1.0, 0.5, 0.05]  # eyeBlinkLeft: vertex 2 moves 5 % of the largest
+    basis[1, 3, 1] = 0.2  # eyeBlinkRight: its own largest motion counts, not the left one's
+    basis[2, :, 2] = 1.0  # jawOpen moves everything: not a lid
+    names = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen"]
+    assert lid_vertices(basis, names, 0.1).tolist() == [True, True, False, True, False, False]
+    assert lid_vertices(basis, names, 0.01).tolist() == [True, True, True, True, False, False]
+    assert not lid_vertices(basis, names, 0.0).any()
+    assert not lid_vertices(basis[2:], ["jawOpen"], 0.1).any()

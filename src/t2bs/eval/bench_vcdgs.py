@@ -146,7 +146,11 @@ def run_case(
                 res = reconstruct_grid(mesh, grid, cfg, progress=progress)
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
                 # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
-                extra = {"steps": int(res.history.get("steps_run", 0)), "expression_shapes": res.expression["shapes"]}
+                extra = {
+                    "steps": int(res.history.get("steps_run", 0)),
+                    "expression_shapes": res.expression["shapes"],
+                    "phases": res.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
+                }
                 if cuda:
                     extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)

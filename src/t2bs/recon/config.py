@@ -111,6 +111,9 @@ class TrackConfig:
     track_agree: float = 0.012  # the direct track is kept within this of the chained one, same unit (1.5 px)
     track_flow_size: int = 256  # px: the flow runs on the training images upsampled to this longer side (0 = as is)
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
+    # Vertices an expression-basis blink shape moves by more than this fraction of its largest motion get no track
+    # term: the flow holds a closing lid back (0 = tracks everywhere)
+    track_release_lids: float = 0.0
 
 
 @dataclass
@@ -134,7 +137,6 @@ class RuntimeConfig:
     seed: int = 0  # every random choice (sampling, initialisation) derives from it
     device: str = "auto"  # auto (cuda if available) | cpu | cuda | cuda:N
     compile: bool = False  # torch.compile the step's deformation and losses (the rasterizer stays eager)
-    cuda_graphs: bool = False  # with compile, on CUDA: replay the step as CUDA graphs (H200 paper step 58.7 -> 22.0 ms)
     threads: int = 2  # torch CPU threads; fixed, so that one config gives the same numbers everywhere (0 = torch's)
     checkpoint_every: int = 200  # steps between resumable checkpoints (0 = never)
 
@@ -229,8 +231,6 @@ class VCDGSConfig:
         o = self.optim
         if o.iterations < 1 or o.global_iters < 0 or o.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
-        if self.runtime.cuda_graphs and not self.runtime.compile:
-            raise UserError("cuda_graphs replays the compiled step: set compile=true with it")
         from t2bs.face.arkit import ARKIT_NAMES
 
         unknown = [n for n in self.model.expression_shapes if n not in ARKIT_NAMES]
@@ -263,6 +263,7 @@ class VCDGSConfig:
         "lr_global_joint",
         "hidden_pick_side_fraction",
         "hidden_pick_even",
+        "track_release_lids",
     )  # <= 1
 
     def _check_ranges(self) -> None:

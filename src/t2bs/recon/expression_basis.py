@@ -53,3 +53,16 @@ def expression_basis(
         )
         return None, info
     return np.stack([rig.morph_targets[n] for n in have]).astype(np.float32), info
+
+
+def lid_vertices(basis: np.ndarray, names: list[str], fraction: float) -> np.ndarray:
+    """[N] bool: the vertices a blink shape of ``basis`` [J, N, 3] (its shapes ``names``) moves by more than
+    ``fraction`` of that shape's largest vertex motion (none without a blink shape, or with ``fraction`` 0)."""
+    out = np.zeros(basis.shape[1], dtype=bool)
+    if fraction <= 0:
+        return out
+    for shape, name in zip(basis, names):
+        if name.startswith("eyeBlink"):
+            motion = np.linalg.norm(shape, axis=1)
+            out |= motion > fraction * motion.max()
+    return out

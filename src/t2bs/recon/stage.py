@@ -92,6 +92,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     m = {
         "method": cfg.method,
         "seconds": round(result.seconds, 2),
+        "phases": result.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
         "perceptual_loss": result.loss_kind,
         "iterations": cfg.optim.iterations,
         "steps_run": result.history.get("steps_run"),

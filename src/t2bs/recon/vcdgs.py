@@ -112,6 +112,9 @@ class ReconResult:
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
     hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
     expression: dict = field(default_factory=dict)  # the expression basis: shapes, landmarks, weights per frame
+    phases: dict = field(
+        default_factory=dict
+    )  # wall seconds of each part: data, tracks, basis, model, train, extract, pick
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
@@ -441,6 +444,28 @@ def _train_only_global(model: VCDGSModel, only: bool) -> None:
             mod.requires_grad_(not only)
 
 
+class _NetworkCheck:
+    """A training run whose joint steps leave the deformation network exactly as it was has trained nothing (a
+    compiled step replayed as CUDA graphs did that on an H100, silently: issue 36): ``check`` says so instead of
+    returning an untrained model. Snapshots the network's weights when the joint stage starts."""
+
+    def __init__(self, model: VCDGSModel, joint: bool):
+        self.params = list(model.deform.parameters()) if joint and model.deform is not None else []
+        self.before = [p.detach().clone() for p in self.params]
+
+    def check(self, joint_steps: int, cfg: VCDGSConfig) -> None:
+        if joint_steps < 1 or not self.params:
+            return
+        if all(torch.equal(p.detach(), b) for p, b in zip(self.params, self.before)):
+            from t2bs.errors import UserError
+
+            raise UserError(
+                f"VCDGS trained nothing: {joint_steps} joint steps left the deformation network unchanged "
+                f"(device {cfg.runtime.device}, compile={str(cfg.runtime.compile).lower()}); this is a bug, please "
+                "report it with this line"
+            )
+
+
 def train(
     model: VCDGSModel,
     data: TrainData,
@@ -488,11 +513,10 @@ def train(
     _train_only_global(model, not joint)
     history["steps_run"] = start
     terms_fn = step_terms
-    graphs = cfg.runtime.cuda_graphs and dev.type == "cuda"  # validate(): cuda_graphs needs compile
     if cfg.runtime.compile:
         # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
-        # reduce-overhead records each compiled part once as a CUDA graph and replays it: the step is launch-bound.
-        terms_fn = torch.compile(step_terms, dynamic=False, mode="reduce-overhead" if graphs else None)
+        terms_fn = torch.compile(step_terms, dynamic=False)
+    networks = _NetworkCheck(model, joint)
     rest_seen = None  # [V, N, 3] the rest pose as each view sees it, for the track term (refreshed)
     for step in bar:
         p = clock.progress(step)
@@ -503,6 +527,7 @@ def train(
             joint = True
             _train_only_global(model, False)
             history["joint_from"] = step
+            networks = _NetworkCheck(model, joint)
         frac = clock.joint_fraction(p)
         history["steps_run"] = step + 1
         for k, o in opts.items():
@@ -517,8 +542,6 @@ def train(
             and (rest_seen is None or step % cfg.tracks.track_refresh == 0)
         ):
             rest_seen = _rest_as_seen(model, data.views)
-        if graphs:  # the previous step's graph outputs are consumed: their buffers may be reused
-            torch.compiler.cudagraph_mark_step_begin()
         terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, rest_seen=rest_seen)
         img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
         loss = sum(terms.values())
@@ -558,6 +581,7 @@ def train(
                 )
     _train_only_global(model, False)
     model.eval()
+    networks.check(history["steps_run"] - max(start, history.get("joint_from") or 0), cfg)
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
     return history
 
@@ -699,11 +723,20 @@ def reconstruct_grid(
 def _reconstruct(
     mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file
 ) -> ReconResult:
-    from t2bs.recon.expression_basis import expression_basis
+    from t2bs.recon.expression_basis import expression_basis, lid_vertices
     from t2bs.recon.extract import canonical_vertices, smooth_displacements
 
     t0 = time.time()
+    phases: dict[str, float] = {}
+    mark = [t0]
+
+    def lap(name: str) -> None:  # the seconds since the last lap, as phase `name`
+        now = time.time()
+        phases[name] = round(now - mark[0], 2)
+        mark[0] = now
+
     data = prepare_data(grid, cfg)
+    lap("data")
     if cfg.tracks.track_weight > 0:
         side = max(data.size)
         views = data.train_views
@@ -720,18 +753,29 @@ def _reconstruct(
             agree_px=cfg.tracks.track_agree * side,
             flow_size=cfg.tracks.track_flow_size,
         )
+    lap("tracks")
     basis, expression = expression_basis(mesh, cfg.model.expression_shapes, landmarks_file)
+    if basis is not None and data.tracks is not None and cfg.tracks.track_release_lids > 0:
+        lids = lid_vertices(basis, expression["shapes"], cfg.tracks.track_release_lids)
+        data.tracks.weights[:, :, torch.from_numpy(lids)] = 0.0
+        expression["tracks_released"] = int(lids.sum())  # vertices whose track term is off
+    lap("basis")
     model, _ = build_model(mesh, data, cfg, static_targets, progress, basis)
+    lap("model")  # the static fit and the control points
     # Budget for training: what is left of time_budget_s, less a small margin for extraction.
     deadline = t0 + cfg.optim.time_budget_s - 5.0 if cfg.optim.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
+    lap("train")
     if basis is not None:
         expression["weights"] = np.round(model.expression_weights().detach().cpu().numpy(), 4).tolist()  # [T, J]
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
+    lap("extract")
     pick = None
     if cfg.hidden_parts.hidden_pick:
         verts, pick = _pick_hidden(mesh, verts, data, cfg)
-    return ReconResult(verts, model, data, history, time.time() - t0, history.get("kind", "dssim"), pick, expression)
+        lap("pick")
+    seconds = time.time() - t0
+    return ReconResult(verts, model, data, history, seconds, history.get("kind", "dssim"), pick, expression, phases)
 
 
 def _pick_hidden(mesh: Mesh, verts: np.ndarray, data: TrainData, cfg: VCDGSConfig) -> tuple[np.ndarray, dict]:
