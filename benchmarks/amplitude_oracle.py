@@ -66,7 +66,9 @@ def main(
         grid = make_grid(mesh, prompt, config=GridConfig(size=128), defects=defect_preset(defects), renderer=renderer)
     torch.manual_seed(seed)
     data = prepare_data(grid, cfg)
-    model, _ = build_model(mesh, data, cfg)
+    # the expression basis as a reconstruction builds it: it can decide which triangles get face Gaussians
+    basis, info = expression_basis(mesh, cfg.model.expression_shapes)
+    model, _ = build_model(mesh, data, cfg, expression_basis=basis)
     truth = grid.gt_vertices.astype(np.float64)
     head = apply_motion(*robust_rigid_motion(mesh.vertices, truth), mesh.vertices)  # [T, N, 3]
     nonrigid = torch.as_tensor(truth - head, dtype=torch.float32)
@@ -74,7 +76,6 @@ def main(
     if direction not in ("truth", "auto-rig"):
         raise UserError(f"--direction {direction!r}: use truth or auto-rig")
     if direction == "auto-rig":
-        basis, info = expression_basis(mesh, cfg.model.expression_shapes)
         if basis is None:
             raise UserError(f"no expression basis for {asset}: {info.get('error', info)}")
         rot, trans = robust_rigid_motion(mesh.vertices, truth)

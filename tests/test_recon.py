@@ -257,6 +257,19 @@ def test_face_gaussian_cap_keeps_the_largest_triangles():
     assert preset("quick").static_fit.max_face_gaussians == 10000 and preset("paper").static_fit.max_face_gaussians == 0
     with pytest.raises(UserError, match="max_face_gaussians"):
         preset("quick", max_face_gaussians=-1)
+    # Triangles an expression stretches keep their face Gaussian under the cap, beside the largest ones.
+    from t2bs.recon.expression_basis import stretched_faces
+
+    small = np.argsort(-v[f].mean(1)[:, 2])[:5]  # small triangles at the top, far from the large ones
+    shape = np.zeros((1, len(v), 3), np.float32)
+    centre = v.mean(0)
+    corners = np.unique(f[small])
+    shape[0, corners] = 0.5 * (v[corners] - centre)  # pushes those corners outwards: their triangles grow
+    stretched = stretched_faces(mesh.vertices, mesh.faces, shape, 1.25)
+    assert stretched[small].all() and not stretched[lower].any()
+    assert not stretched_faces(mesh.vertices, mesh.faces, shape, 0.0).any()
+    kept = init_static_gaussians(mesh, max_face_gaussians=coarse, keep_faces=stretched)
+    np.testing.assert_array_equal(kept.faces, mesh.faces[lower | stretched])
 
 
 def test_losses_dssim_default_and_lpips_weights(tmp_path):

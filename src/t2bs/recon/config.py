@@ -34,6 +34,8 @@ class StaticFitConfig:
     static_shading: str = "auto"  # shading of those mesh renders: auto (the grid's, from its meta) | unlit | lambert
     face_gaussians: bool = True  # also one Gaussian per triangle, rebuilt from its deformed corners (mouths opening)
     max_face_gaussians: int = 10000  # face Gaussians only on this many of the largest triangles (0 = every triangle)
+    # ... and on every triangle an expression-basis shape stretches by more than this area ratio (0 = none)
+    stretch_face_gaussians: float = 1.25
     flatness: float = 0.25  # initial normal-axis scale / tangent scale: Gaussians start as flat disks
     splat_offsets: bool = True  # the fit may slide each vertex Gaussian along the surface, off its vertex (part edges)
 
@@ -113,7 +115,7 @@ class TrackConfig:
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
     # Vertices an expression-basis blink shape moves by more than this fraction of its largest motion get no track
     # term: the flow holds a closing lid back (0 = tracks everywhere)
-    track_release_lids: float = 0.0
+    track_release_lids: float = 0.1
 
 
 @dataclass

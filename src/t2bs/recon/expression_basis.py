@@ -66,3 +66,18 @@ def lid_vertices(basis: np.ndarray, names: list[str], fraction: float) -> np.nda
             motion = np.linalg.norm(shape, axis=1)
             out |= motion > fraction * motion.max()
     return out
+
+
+def stretched_faces(vertices: np.ndarray, faces: np.ndarray, basis: np.ndarray, ratio: float) -> np.ndarray:
+    """[F] bool: the triangles of ``faces`` [F, 3] whose area some shape of ``basis`` [J, N, 3] (at weight 1) makes
+    more than ``ratio`` times their rest area (none with ``ratio`` 0)."""
+    from t2bs.geometry.mesh import face_area_normals
+
+    out = np.zeros(len(faces), dtype=bool)
+    if ratio <= 0:
+        return out
+    rest = np.linalg.norm(face_area_normals(vertices, faces), axis=1)
+    for shape in basis:
+        moved = np.linalg.norm(face_area_normals(vertices + shape, faces), axis=1)
+        out |= moved > ratio * np.maximum(rest, 1e-20)
+    return out

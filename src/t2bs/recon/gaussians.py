@@ -168,25 +168,34 @@ def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale,
     )
 
 
-def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int) -> np.ndarray:
+def largest_faces(vertices: np.ndarray, faces: np.ndarray, limit: int, also: np.ndarray | None = None) -> np.ndarray:
     """The ``limit`` largest-area triangles of ``faces`` [F, 3] (all of them when F <= limit or
-    limit <= 0), in their original order -> [min(F, limit), 3].
+    limit <= 0) and those ``also`` [F] bool marks, in their original order -> [K, 3].
 
     Why the largest: a small triangle's corners sit within each other's vertex Gaussians (tangent
     std = half the mean edge), so its face Gaussian adds little coverage; a large one leaves a gap
-    between its corners that only its face Gaussian fills."""
+    between its corners that only its face Gaussian fills. ``also``: small triangles that an expression
+    stretches (a lid over the eye), where the corners' rest-sized Gaussians part and the eye shows through."""
     if limit <= 0 or len(faces) <= limit:
         return faces
     area = np.linalg.norm(face_area_normals(vertices, faces), axis=1)  # twice the area: the order is the same
-    keep = np.sort(np.argsort(-area, kind="stable")[:limit])
+    keep = np.zeros(len(faces), dtype=bool)
+    keep[np.argsort(-area, kind="stable")[:limit]] = True
+    if also is not None:
+        keep |= also
     return faces[keep]
 
 
 def init_static_gaussians(
-    mesh: Mesh, flatness: float = 0.25, with_face_gaussians: bool = True, max_face_gaussians: int = 0
+    mesh: Mesh,
+    flatness: float = 0.25,
+    with_face_gaussians: bool = True,
+    max_face_gaussians: int = 0,
+    keep_faces: np.ndarray | None = None,
 ) -> StaticGaussians:
     """One flat Gaussian per vertex: tangent std = 0.5 x mean incident edge length; optionally one
-    per triangle, on at most ``max_face_gaussians`` of the largest ones (0 = every triangle)."""
+    per triangle, on at most ``max_face_gaussians`` of the largest ones (0 = every triangle) and on
+    the triangles ``keep_faces`` [F] bool marks."""
     v = mesh.vertices.astype(np.float64)
     f = mesh.faces.astype(np.int64)
     mean_edge, count, length = incident_edge_lengths(v, f)
@@ -200,7 +209,7 @@ def init_static_gaussians(
     colors = mesh.vertex_rgb().astype(np.float32)
     faces = face_colors = face_log_scale = None
     if with_face_gaussians:
-        faces = largest_faces(v, f, max_face_gaussians)
+        faces = largest_faces(v, f, max_face_gaussians, keep_faces)
         if mesh.texture is not None and mesh.uv is not None:
             from t2bs.geometry.mesh import sample_texture
 

@@ -174,8 +174,13 @@ def build_model(
     ``static_targets``: (rgb [V, H, W, 3], mask [V, H, W]) renders of the static mesh from every
     view of ``data`` (made with the mesh renderer when None); ``expression_basis``: [J, N, 3] shapes whose
     per-frame weights are learned too (recon/expression_basis.py), or None."""
+    keep = None
+    if expression_basis is not None and cfg.static_fit.stretch_face_gaussians > 0:
+        from t2bs.recon.expression_basis import stretched_faces
+
+        keep = stretched_faces(mesh.vertices, mesh.faces, expression_basis, cfg.static_fit.stretch_face_gaussians)
     gs = init_static_gaussians(
-        mesh, cfg.static_fit.flatness, cfg.static_fit.face_gaussians, cfg.static_fit.max_face_gaussians
+        mesh, cfg.static_fit.flatness, cfg.static_fit.face_gaussians, cfg.static_fit.max_face_gaussians, keep
     )
     if cfg.static_fit.static_iters > 0:
         if static_targets is None:
