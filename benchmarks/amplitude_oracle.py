@@ -11,7 +11,14 @@ it in the motion model; if not, the splats' appearance biases the photometric op
 
 Prints one JSON object: ``amplitude_gain`` (the fitted s_t averaged with weights |non-rigid motion|^2, so the peak
 frames count most), ``peak_gain`` (s_t at the frame of largest motion), the per-frame ``s`` and the seconds.
-Measurements: docs/VCDGS_NOTES.md ("The images hold the blink once the splats end where the lids end").
+
+``--direction auto-rig``: instead, the splats follow the true head motion applied to the rest pose plus per-frame
+weights of the expression basis's auto-rig shapes (recon/expression_basis.py), the weights alone fitted; prints the
+expression error / rigid oracle of those weights (``expr_ratio_images``) beside that of the weights least squares
+gives against the true motion (``expr_ratio_least_squares``), and both at the peak frame: whether a reconstruction
+with the basis stops at what the images ask for, and how far that is from what the shapes could reach.
+Measurements: docs/VCDGS_NOTES.md ("The images hold the blink once the splats end where the lids end", "With the
+basis the fit reaches what the images ask for").
 """
 
 from __future__ import annotations
@@ -128,7 +135,9 @@ def main(
             "peak_weights_least_squares": [round(float(x), 3) for x in lsq[peak]],
         }
         result["seconds"] = round(time.time() - t0, 1)
-        print(json.dumps({"asset": asset, "prompt": prompt, "defects": defects, **result}))
+        print(
+            json.dumps({"asset": asset, "prompt": prompt, "defects": defects, "options": set_options or [], **result})
+        )
         return
     print(
         json.dumps(

@@ -142,3 +142,16 @@ def test_lid_vertices_are_those_a_blink_shape_moves_beyond_the_fraction():
     assert lid_vertices(basis, names, 0.01).tolist() == [True, True, True, True, False, False]
     assert not lid_vertices(basis, names, 0.0).any()
     assert not lid_vertices(basis[2:], ["jawOpen"], 0.1).any()
+
+
+def test_release_lid_tracks_zeroes_only_the_lid_vertices_tracks():
+    from t2bs.recon.expression_basis import release_lid_tracks
+    from t2bs.recon.tracks import VertexTracks
+
+    basis = np.zeros((2, 5, 3), np.float32)
+    basis[0, [1, 2], 1] = [1.0, 0.5]  # eyeBlinkLeft moves vertices 1 and 2
+    basis[1, :, 2] = 1.0  # jawOpen moves all: not released
+    tracks = VertexTracks(torch.ones(2, 3, 5, 2), torch.ones(2, 3, 5))
+    assert release_lid_tracks(tracks, basis, ["eyeBlinkLeft", "jawOpen"], 0.1) == 2
+    assert tracks.weights[:, :, [1, 2]].eq(0).all() and tracks.weights[:, :, [0, 3, 4]].eq(1).all()
+    assert preset("quick").tracks.track_release_lids == 0.1

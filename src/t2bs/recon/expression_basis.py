@@ -68,6 +68,17 @@ def lid_vertices(basis: np.ndarray, names: list[str], fraction: float) -> np.nda
     return out
 
 
+def release_lid_tracks(tracks, basis: np.ndarray, names: list[str], fraction: float) -> int:
+    """Zero the track weights (``recon.tracks.VertexTracks``, in place) of the vertices ``lid_vertices`` picks: the
+    optical flow of a closing lid lags it (it carries 0.37 of facecap's blink) and the track term would hold the lid
+    back. -> the number of vertices released."""
+    import torch
+
+    lids = lid_vertices(basis, names, fraction)
+    tracks.weights[:, :, torch.from_numpy(lids)] = 0.0
+    return int(lids.sum())
+
+
 def stretched_faces(vertices: np.ndarray, faces: np.ndarray, basis: np.ndarray, ratio: float) -> np.ndarray:
     """[F] bool: the triangles of ``faces`` [F, 3] whose area some shape of ``basis`` [J, N, 3] (at weight 1) makes
     more than ``ratio`` times their rest area (none with ``ratio`` 0)."""

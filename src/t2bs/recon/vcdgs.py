@@ -728,7 +728,7 @@ def reconstruct_grid(
 def _reconstruct(
     mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file
 ) -> ReconResult:
-    from t2bs.recon.expression_basis import expression_basis, lid_vertices
+    from t2bs.recon.expression_basis import expression_basis, release_lid_tracks
     from t2bs.recon.extract import canonical_vertices, smooth_displacements
 
     t0 = time.time()
@@ -761,9 +761,9 @@ def _reconstruct(
     lap("tracks")
     basis, expression = expression_basis(mesh, cfg.model.expression_shapes, landmarks_file)
     if basis is not None and data.tracks is not None and cfg.tracks.track_release_lids > 0:
-        lids = lid_vertices(basis, expression["shapes"], cfg.tracks.track_release_lids)
-        data.tracks.weights[:, :, torch.from_numpy(lids)] = 0.0
-        expression["tracks_released"] = int(lids.sum())  # vertices whose track term is off
+        expression["tracks_released"] = release_lid_tracks(
+            data.tracks, basis, expression["shapes"], cfg.tracks.track_release_lids
+        )
     lap("basis")
     model, _ = build_model(mesh, data, cfg, static_targets, progress, basis)
     lap("model")  # the static fit and the control points
