@@ -112,9 +112,7 @@ class ReconResult:
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
     hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
     expression: dict = field(default_factory=dict)  # the expression basis: shapes, landmarks, weights per frame
-    phases: dict = field(
-        default_factory=dict
-    )  # wall seconds of each part: data, tracks, basis, model, train, extract, pick
+    phases: dict = field(default_factory=dict)  # wall seconds per part: data, tracks, basis, model, train, extract
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
