@@ -66,6 +66,8 @@ def main(
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
 
+    if direction not in ("truth", "auto-rig"):
+        raise UserError(f"--direction {direction!r}: use truth or auto-rig")
     t0 = time.time()
     cfg = preset("quick", **{"time_budget_s": 0.0, **parse_options(set_options or [])})
     _, mesh = load_asset(asset)
@@ -77,15 +79,13 @@ def main(
     basis, info = expression_basis(mesh, cfg.model.expression_shapes)
     model, _ = build_model(mesh, data, cfg, expression_basis=basis)
     truth = grid.gt_vertices.astype(np.float64)
-    head = apply_motion(*robust_rigid_motion(mesh.vertices, truth), mesh.vertices)  # [T, N, 3]
+    rot, trans = robust_rigid_motion(mesh.vertices, truth)  # each frame's head motion
+    head = apply_motion(rot, trans, mesh.vertices)  # [T, N, 3]
     nonrigid = torch.as_tensor(truth - head, dtype=torch.float32)
     head = torch.as_tensor(head, dtype=torch.float32)
-    if direction not in ("truth", "auto-rig"):
-        raise UserError(f"--direction {direction!r}: use truth or auto-rig")
     if direction == "auto-rig":
         if basis is None:
             raise UserError(f"no expression basis for {asset}: {info.get('error', info)}")
-        rot, trans = robust_rigid_motion(mesh.vertices, truth)
         rot_t, trans_t = torch.as_tensor(rot, dtype=torch.float32), torch.as_tensor(trans, dtype=torch.float32)
         rest, shapes = torch.as_tensor(mesh.vertices, dtype=torch.float32), torch.as_tensor(basis)
         amp = torch.zeros(data.frames, len(basis), requires_grad=True)
