@@ -130,16 +130,17 @@ def test_the_photometric_loss_alone_finds_a_shapes_weight_over_time():
     assert np.argmax(w) in np.flatnonzero(truth == truth.max())
 
 
-def test_lid_vertices_are_those_a_blink_shape_moves_beyond_the_fraction():
+def test_lid_vertices_are_those_a_blink_shape_moves_down_beyond_the_fraction():
     from t2bs.recon.expression_basis import lid_vertices
 
-    basis = np.zeros((3, 6, 3), np.float32)
-    basis[0, :3, 1] = [1.0, 0.5, 0.05]  # eyeBlinkLeft: vertex 2 moves 5 % of the largest
-    basis[1, 3, 1] = 0.2  # eyeBlinkRight: its own largest motion counts, not the left one's
+    basis = np.zeros((3, 7, 3), np.float32)
+    basis[0, :3, 1] = [-1.0, -0.5, -0.05]  # eyeBlinkLeft: vertex 2 moves 5 % of the largest
+    basis[0, 6, 1] = 0.5  # a lower-lid vertex rising: keeps its track
+    basis[1, 3, 1] = -0.2  # eyeBlinkRight: its own largest motion counts, not the left one's
     basis[2, :, 2] = 1.0  # jawOpen moves everything: not a lid
     names = ["eyeBlinkLeft", "eyeBlinkRight", "jawOpen"]
-    assert lid_vertices(basis, names, 0.1).tolist() == [True, True, False, True, False, False]
-    assert lid_vertices(basis, names, 0.01).tolist() == [True, True, True, True, False, False]
+    assert lid_vertices(basis, names, 0.1).tolist() == [True, True, False, True, False, False, False]
+    assert lid_vertices(basis, names, 0.01).tolist() == [True, True, True, True, False, False, False]
     assert not lid_vertices(basis, names, 0.0).any()
     assert not lid_vertices(basis[2:], ["jawOpen"], 0.1).any()
 
@@ -149,7 +150,7 @@ def test_release_lid_tracks_zeroes_only_the_lid_vertices_tracks():
     from t2bs.recon.tracks import VertexTracks
 
     basis = np.zeros((2, 5, 3), np.float32)
-    basis[0, [1, 2], 1] = [1.0, 0.5]  # eyeBlinkLeft moves vertices 1 and 2
+    basis[0, [1, 2], 1] = [-1.0, -0.5]  # eyeBlinkLeft moves vertices 1 and 2 down
     basis[1, :, 2] = 1.0  # jawOpen moves all: not released
     tracks = VertexTracks(torch.ones(2, 3, 5, 2), torch.ones(2, 3, 5))
     assert release_lid_tracks(tracks, basis, ["eyeBlinkLeft", "jawOpen"], 0.1) == 2

@@ -113,8 +113,8 @@ class TrackConfig:
     track_agree: float = 0.012  # the direct track is kept within this of the chained one, same unit (1.5 px)
     track_flow_size: int = 256  # px: the flow runs on the training images upsampled to this longer side (0 = as is)
     track_blur: float = 0.0055  # Gaussian blur sigma of the flow's input images, same unit (0.7 px at 128)
-    # Vertices an expression-basis blink shape moves by more than this fraction of its largest motion get no track
-    # term: the flow holds a closing lid back (0 = tracks everywhere)
+    # Vertices an expression-basis blink shape moves downwards by more than this fraction of its largest motion (the
+    # upper lids) get no track term: the flow holds a closing lid back (0 = tracks everywhere)
     track_release_lids: float = 0.1
 
 
