@@ -196,7 +196,7 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
     # ---- lids and eyeballs
     upper_lid = np.zeros(len(v))  # largest upper-lid weight of either eye (brows leave the lid margin still)
     for side in ("left", "right"):
-        lid = _lids(f, surf, side, eyeballs.get(side), config, attached)
+        lid = _lids(f, surf, side, eyeballs.get(side), config, attached, comp)
         info[f"eye_{side}"] = lid["info"]
         cap = side.capitalize()
         shapes[f"eyeBlink{cap}"] = lid["move"](1.0, 1.0, clamp=True)
@@ -518,12 +518,19 @@ def _lids(
     ball: np.ndarray | None,
     config: AutoRigConfig,
     attached: tuple[np.ndarray, np.ndarray] | None = None,
+    comp: np.ndarray | None = None,
 ) -> dict:
     """Lid deformer of one eye: ``move(upper, lower, clamp)`` -> [N, 3] offsets (upper 1 = to the meeting line).
 
     Round eyes (see ``_eye_is_round``): lid vertices turn about the eyeball's centre around the corner-to-corner
     axis, by angle. Flat eyes: they slide along the eye's up direction (in the face's plane, across that
     axis), by height: the opening squashes onto the meeting line. The weights are the same for both.
+
+    A lid shell (``comp`` [N] welded component ids given, and the eye's six points on a component of their own,
+    not the mouth's: a cartoon lid modelled as a separate part around the eyeball) turns as one piece: its weights
+    fall off from the margin over the whole shell, to 0 only at its far side, instead of over the skin's
+    anatomical lid height (which bends a shell a third of the way back and leaves the rest behind), and its lids
+    meet where a flat eye's do.
     """
     v, pts, pid = f.v, f.P[EYES[side]], f.ids[EYES[side]]
     we = float(np.linalg.norm(pts[0] - pts[3]))
@@ -554,7 +561,6 @@ def _lids(
     # Anatomy: the moving upper lid spans lash line to crease (about a third of the eye's width), the lower less.
     r_u, r_l = 0.45 * we * config.falloff, 0.3 * we * config.falloff
     meet = lid_meet_line(round_eye, r_u, r_l) if config.lid_meet is None else config.lid_meet
-    th_m = th_l + meet * (th_u - th_l)
     eye_h = float(np.mean(np.linalg.norm(pts[[1, 2]] - pts[[5, 4]], axis=1)))
 
     def margin(order):
@@ -570,8 +576,17 @@ def _lids(
 
     up_seeds, up_prof = margin([0, 1, 2, 3])
     lo_seeds, lo_prof = margin([0, 5, 4, 3])
-    d_u, src_u = surf.distance(up_seeds, limit=2 * r_u)
-    d_l, src_l = surf.distance(lo_seeds, limit=2 * r_u)
+    shell = comp is not None and len(np.unique(comp[pid])) == 1 and comp[pid[0]] not in comp[f.ids[12:20]]
+    limit = np.inf if shell else 2 * r_u  # a shell is its own component: no distance leaves it
+    d_u, src_u = surf.distance(up_seeds, limit=limit)
+    d_l, src_l = surf.distance(lo_seeds, limit=limit)
+    if shell:
+        # A shell is no human lid over its ball (whose lower lid hardly moves): its lids meet where a flat eye's
+        # do, each giving way in proportion to its lid height (lid_meet_line: 0.4). Its weights fall off over the
+        # whole shell, margin to far side.
+        meet = lid_meet_line(False, r_u, r_l) if config.lid_meet is None else config.lid_meet
+        r_u = r_l = float(np.max(np.minimum(d_u, d_l)[comp == comp[pid[0]]]))
+    th_m = th_l + meet * (th_u - th_l)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
         gate_u = np.clip((d_l - d_u) / (0.3 * eye_h), 0.0, 1.0)
         gate_l = np.clip((d_u - d_l) / (0.3 * eye_h), 0.0, 1.0)
@@ -618,6 +633,7 @@ def _lids(
         return off
 
     info = {"lids": "turn about the eyeball" if round_eye else "slide (flat eye)", **shape, "lid_meet": round(meet, 3)}
+    info["lid_shell"] = bool(shell)
     if round_eye:
         info.update(
             centre=[round(float(x), 5) for x in centre],
