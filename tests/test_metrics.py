@@ -331,6 +331,26 @@ def test_expression_metrics_take_the_head_motion_out():
     assert m["cosine"] == pytest.approx(-1.0, abs=1e-6) and m["expr_ratio"] == pytest.approx(2.0, rel=1e-6)
 
 
+def test_expression_metrics_see_motion_where_the_truth_is_still():
+    """A lid closed at the wrong frame: the masked ratio cannot see it, ``spurious`` does, in the true motion's units."""
+    rest, gt, bump, rot, trans = _turn_plus_bump()
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    assert expression_metrics(gt, gt, rest)["spurious"] == pytest.approx(0.0, abs=1e-9)
+    # The truth still at frames 0-1 (frame 0 is the rest, frame 1's bump made 0): the prediction moves at frame 1 by
+    # the peak bump.
+    gt2, pred = gt.copy(), gt.copy()
+    gt2[1] = np.einsum("ij,nj->ni", rot[1], rest) + trans[1]
+    pred[1] = np.einsum("ij,nj->ni", rot[1], rest + bump[-1]) + trans[1]
+    m = expression_metrics(pred, gt2, rest)
+    moving = np.linalg.norm(bump[2:], axis=-1) > 0.005 * diag
+    true_mean = float(np.linalg.norm(bump[2:], axis=-1)[moving].mean() / diag)
+    assert m["expr_ratio"] == pytest.approx(0.0, abs=1e-9)  # blind to it
+    patch = moving.any(0)
+    false_mean = float(np.linalg.norm(bump[-1][patch], axis=-1).mean() / diag)  # frame 1's false motion on the patch
+    # the still pairs: frames 0 and 1 of the patch, frame 1 carrying the false motion
+    assert m["spurious"] == pytest.approx(false_mean / 2 / true_mean, rel=1e-6)
+
+
 def test_expression_metrics_of_a_rigid_capture_are_undefined():
     rest, _, _, rot, trans = _turn_plus_bump()
     rigid = np.einsum("tij,nj->tni", rot, rest) + trans[:, None]

@@ -8,7 +8,8 @@ views (``--holdout``, default 4 and 10: azimuth -25.7 and +25.7 deg) are never t
 Columns, expression first (geometry.metrics.expression_metrics): each frame's head motion taken out of the truth and
 out of the reconstruction, over the vertices whose true non-rigid motion exceeds 0.5 % of the diagonal: expr_p2p,
 expr/rigid (its ratio to the rigid oracle: 1 = no better than perfect head tracking with a neutral face),
-recovered (|recovered motion| / |true motion| there) and cosine (its direction). Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
+recovered (|recovered motion| / |true motion| there), cosine (its direction) and spurious (false motion of those
+vertices in the frames where the truth leaves them still, in units of the true motion's mean). Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
 and over those whose true displacement from the rest pose exceeds 0.5 % of the diagonal), p2p_seen
 (the moving pairs of vertices that some training view sees in some true frame, depth-tested at
 1024 px; seen_fraction: their share. The rest, such as a mouth's back teeth, change no pixel of any
@@ -19,7 +20,7 @@ seconds per reconstruction. Baselines: "static" is the neutral mesh for every fr
 true head motion (its robust rigid fit).
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, expr_p2p,
-expr_rigid, expr_ratio, recovered, cosine, expr_fraction, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
+expr_rigid, expr_ratio, recovered, cosine, expr_fraction, spurious, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
 (also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran). The summary holds the mean per (defects, method), the full / static ratio per case,
 and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
 claim as mean expr_p2p / p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
@@ -194,6 +195,7 @@ def _cells(r: dict) -> list[str]:
         _fmt(r, "expr_ratio", ".3f"),
         _fmt(r, "recovered", ".2f"),
         _fmt(r, "cosine", ".2f"),
+        _fmt(r, "spurious", ".2f"),
         f"{r['p2p_moving']:.5f}",
         _fmt(r, "p2p_seen", ".5f"),
         f"{r['p2p_all']:.5f}",
@@ -213,6 +215,7 @@ HEADER = (
     "expr/rigid",
     "recovered",
     "cosine",
+    "spurious",
     "p2p_moving",
     "p2p_seen",
     "p2p_all",
@@ -238,6 +241,7 @@ METRIC_KEYS = (
     "expr_ratio",
     "recovered",
     "cosine",
+    "spurious",
     "p2p_all",
     "p2p_moving",
     "p2p_seen",

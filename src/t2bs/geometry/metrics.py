@@ -116,7 +116,12 @@ def expression_metrics(
     - ``recovered``: |e_pred| / |e_gt| (Frobenius norms over those pairs): how much of the motion's size came back;
     - ``cosine``: <e_pred, e_gt> / (|e_pred| |e_gt|) over those pairs: whether it went the right way (0 when
       nothing moved, i.e. |e_pred| < 1e-4 |e_gt|);
-    - ``expr_fraction``: the share of (frame, vertex) pairs in the mask.
+    - ``expr_fraction``: the share of (frame, vertex) pairs in the mask;
+    - ``spurious``: what the mask cannot see, motion where the truth is still: mean |e_pred - e_gt| over the frames
+      where the expression's vertices (those in the mask in some frame) stay under the threshold, divided by
+      ``expr_rigid`` (0 = still where the truth is still; 1 = as much false motion there as the true motion's mean
+      size; a lid closed at the wrong frames shows here and not in ``expr_ratio``). nan when those vertices move in
+      every frame.
 
     With no pair above the threshold (a capture without expression) the ratios are nan."""
     pred, gt, rest = np.asarray(pred, np.float64), np.asarray(gt, np.float64), np.asarray(rest, np.float64)
@@ -135,11 +140,14 @@ def expression_metrics(
             "recovered": nan,
             "cosine": nan,
             "expr_fraction": 0.0,
+            "spurious": nan,
         }
     a, b = e_pred[mask], e_gt[mask]  # [M, 3]
     err = float(np.linalg.norm(a - b, axis=-1).mean() / d)
     rigid = float(np.linalg.norm(b, axis=-1).mean() / d)
     na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    still = mask.any(0)[None] & ~mask  # [T, N]: the expression's vertices where the truth leaves them be
+    spurious = float(np.linalg.norm((e_pred - e_gt)[still], axis=-1).mean() / d / rigid) if still.any() else np.nan
     return {
         "expr_p2p": err,
         "expr_rigid": rigid,
@@ -148,4 +156,5 @@ def expression_metrics(
         # below 1e-4 of the true motion, what is left is float32 rounding of a rigid motion: no direction
         "cosine": float((a * b).sum() / (na * nb)) if na > 1e-4 * nb else 0.0,
         "expr_fraction": float(mask.mean()),
+        "spurious": spurious,
     }
