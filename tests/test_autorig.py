@@ -690,3 +690,16 @@ def test_a_lid_shell_turns_as_one_piece_like_the_characters_own_blink(prompt):
 
 def test_lids_in_the_skin_are_no_shell(head):
     assert head[-1].info["eye_left"]["lid_shell"] is False and head[-1].info["eye_left"]["lid_meet"] == 0.2
+
+
+def test_a_head_whose_mouth_is_another_part_is_no_lid_shell(head):
+    """Eyes on the head's skin and the mouth points on a part of their own (here: the teeth standing in for lips
+    modelled apart): the head is not a shell around the eye, its lids keep the skin's falloff."""
+    mesh, lm, parts, _, _, _ = head
+    moved = lm.copy()
+    teeth = np.concatenate([parts["teeth_upper"], parts["teeth_lower"]])
+    v = mesh.vertices
+    for i in range(12, 20):  # each mouth point to the nearest tooth vertex
+        moved[i] = teeth[np.argmin(np.linalg.norm(v[teeth] - v[lm[i]], axis=1))]
+    rig = autorig(mesh, FaceLandmarks(moved, "file", {}, find_eyeballs(mesh)))
+    assert rig.info["eye_left"]["lid_shell"] is False and rig.info["eye_left"]["lid_meet"] == 0.2

@@ -527,10 +527,10 @@ def _lids(
     axis), by height: the opening squashes onto the meeting line. The weights are the same for both.
 
     A lid shell (``comp`` [N] welded component ids given, and the eye's six points on a component of their own,
-    not the mouth's: a cartoon lid modelled as a separate part around the eyeball) turns as one piece: its weights
-    fall off from the margin over the whole shell, to 0 only at its far side, instead of over the skin's
-    anatomical lid height (which bends a shell a third of the way back and leaves the rest behind), and its lids
-    meet where a flat eye's do.
+    not the mouth's, within two eye widths of the eye: a cartoon lid modelled as a separate part around the eyeball)
+    turns as one piece: its weights fall off from the margin over the whole shell, to 0 only at its far side,
+    instead of over the skin's anatomical lid height (which bends a shell a third of the way back and leaves the
+    rest behind), and its lids meet where a flat eye's do.
     """
     v, pts, pid = f.v, f.P[EYES[side]], f.ids[EYES[side]]
     we = float(np.linalg.norm(pts[0] - pts[3]))
@@ -577,6 +577,9 @@ def _lids(
     up_seeds, up_prof = margin([0, 1, 2, 3])
     lo_seeds, lo_prof = margin([0, 5, 4, 3])
     shell = comp is not None and len(np.unique(comp[pid])) == 1 and comp[pid[0]] not in comp[f.ids[12:20]]
+    if shell:  # and it stays around the eye (a head whose lips are a part of their own is no shell)
+        part = v[comp == comp[pid[0]]]
+        shell = bool(np.linalg.norm(part - pts.mean(0), axis=1).max() < 2.0 * we)
     limit = np.inf if shell else 2 * r_u  # a shell is its own component: no distance leaves it
     d_u, src_u = surf.distance(up_seeds, limit=limit)
     d_l, src_l = surf.distance(lo_seeds, limit=limit)
