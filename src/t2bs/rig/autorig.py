@@ -588,7 +588,8 @@ def _lids(
         # do, each giving way in proportion to its lid height (lid_meet_line: 0.4). Its weights fall off over the
         # whole shell, margin to far side.
         meet = lid_meet_line(False, r_u, r_l) if config.lid_meet is None else config.lid_meet
-        r_u = r_l = float(np.max(np.minimum(d_u, d_l)[comp == comp[pid[0]]]))
+        reach = np.minimum(d_u, d_l)[comp == comp[pid[0]]]  # the same welded component: finite but kept safe
+        r_u = r_l = float(np.max(reach[np.isfinite(reach)]))
     th_m = th_l + meet * (th_u - th_l)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
         gate_u = np.clip((d_l - d_u) / (0.3 * eye_h), 0.0, 1.0)
