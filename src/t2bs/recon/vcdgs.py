@@ -112,7 +112,8 @@ class ReconResult:
     loss_kind: str = "dssim"  # which perceptual term ran (lpips | dssim | none)
     hidden_pick: dict | None = None  # hidden_parts.HiddenPick.summary() when config.hidden_parts.hidden_pick ran
     expression: dict = field(default_factory=dict)  # the expression basis: shapes, landmarks, weights per frame
-    phases: dict = field(default_factory=dict)  # wall seconds per part: data, tracks, basis, model, train, extract
+    # wall seconds per part: data, tracks, basis, model, train, extract, pick
+    phases: dict = field(default_factory=dict)
 
 
 def prepare_data(grid, cfg: VCDGSConfig) -> TrainData:
@@ -173,7 +174,8 @@ def build_model(
     view of ``data`` (made with the mesh renderer when None); ``expression_basis``: [J, N, 3] shapes whose
     per-frame weights are learned too (recon/expression_basis.py), or None."""
     keep = None
-    if expression_basis is not None and cfg.static_fit.stretch_face_gaussians > 0:
+    capped = 0 < cfg.static_fit.max_face_gaussians < len(mesh.faces)  # under the cap every triangle has one already
+    if expression_basis is not None and cfg.static_fit.stretch_face_gaussians > 0 and capped:
         from t2bs.recon.expression_basis import stretched_faces
 
         keep = stretched_faces(mesh.vertices, mesh.faces, expression_basis, cfg.static_fit.stretch_face_gaussians)

@@ -578,8 +578,8 @@ def _lids(
     lo_seeds, lo_prof = margin([0, 5, 4, 3])
     shell = comp is not None and len(np.unique(comp[pid])) == 1 and comp[pid[0]] not in comp[f.ids[12:20]]
     if shell:  # and it stays around the eye (a head whose lips are a part of their own is no shell)
-        part = v[comp == comp[pid[0]]]
-        shell = bool(np.linalg.norm(part - pts.mean(0), axis=1).max() < 2.0 * we)
+        own = comp == comp[pid[0]]  # [N] the shell's vertices
+        shell = bool(np.linalg.norm(v[own] - pts.mean(0), axis=1).max() < 2.0 * we)
     limit = np.inf if shell else 2 * r_u  # a shell is its own component: no distance leaves it
     d_u, src_u = surf.distance(up_seeds, limit=limit)
     d_l, src_l = surf.distance(lo_seeds, limit=limit)
@@ -588,7 +588,7 @@ def _lids(
         # do, each giving way in proportion to its lid height (lid_meet_line: 0.4). Its weights fall off over the
         # whole shell, margin to far side.
         meet = lid_meet_line(False, r_u, r_l) if config.lid_meet is None else config.lid_meet
-        reach = np.minimum(d_u, d_l)[comp == comp[pid[0]]]  # the same welded component: finite but kept safe
+        reach = np.minimum(d_u, d_l)[own]  # the same welded component: finite but kept safe
         r_u = r_l = float(np.max(reach[np.isfinite(reach)]))
     th_m = th_l + meet * (th_u - th_l)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
