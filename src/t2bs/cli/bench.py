@@ -83,6 +83,9 @@ def bench_vcdgs_command(
         "do, and under a time budget its step count: add --time-budget 0 for rows that do not "
         "depend on the machine's load).",
     ),
+    progress: bool = typer.Option(
+        False, "--progress", help="Show each reconstruction's progress bars on stderr (where a cut-off run stopped)."
+    ),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     result = bench_vcdgs(
@@ -103,6 +106,7 @@ def bench_vcdgs_command(
             fresh=fresh,
             set_options=tuple(set_options or ()),
             workers=workers,
+            progress=progress,
         )
     )
     print(markdown(result["rows"]))

@@ -149,6 +149,7 @@ def run_case(
                 # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
                 extra = {
                     "steps": int(res.history.get("steps_run", 0)),
+                    "joint_ms_per_step": res.history.get("joint_ms_per_step"),  # after the joint stage's first 50
                     "expression_shapes": res.expression["shapes"],
                     "phases": res.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
                 }
@@ -480,6 +481,7 @@ class BenchVcdgsConfig:
     fresh: bool = False  # recompute every row even if json_file holds them from the same settings
     set_options: tuple[str, ...] = ()  # other VCDGSConfig fields as "KEY=VALUE", for every method
     workers: int = 1  # cases run in this many parallel processes (rows do not change with it)
+    progress: bool = False  # each reconstruction's progress bars on stderr (a run cut off by a timeout shows where)
 
 
 def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
@@ -522,4 +524,5 @@ def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
         options=options or None,
         resume=not config.fresh,
         workers=config.workers,
+        progress=config.progress,
     )

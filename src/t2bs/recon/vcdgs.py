@@ -498,7 +498,9 @@ def train(
     # fused: one kernel per optimiser step instead of ~10 operators per parameter tensor (CPU and CUDA).
     opts = {k: torch.optim.Adam(p, lr=lr, fused=True) for k, (p, lr) in groups.items()}
     warm = warm_up_steps(model, cfg.optim)
-    history = {"step": [], "loss": [], "image": [], "kind": perceptual.kind, "first_image_loss": None}
+    # clock: seconds since this call began at each logged step (read after a device sync: the loss's float)
+    history = {"step": [], "loss": [], "image": [], "clock": [], "kind": perceptual.kind, "first_image_loss": None}
+    started = time.perf_counter()
     start = 0
     if checkpoint is not None and checkpoint.exists():
         resumed = resume_checkpoint(checkpoint, key, model, opts, gen, cfg.optim.iterations, dev)
@@ -512,6 +514,7 @@ def train(
         initial=start,
         total=cfg.optim.iterations,
     )
+    history["clock_from"] = start  # a resumed run's earlier clock readings are another process's
     model.train()
     clock = _Schedule(cfg.optim.iterations, warm, deadline)
     joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
@@ -563,6 +566,7 @@ def train(
             history["step"].append(step)
             history["loss"].append(float(loss.detach()))
             history["image"].append(float(img))
+            history.setdefault("clock", []).append(round(time.perf_counter() - started, 3))
             bar.set_postfix(stage="joint" if joint else "global", loss=f"{float(loss.detach()):.4f}")
         if (
             checkpoint is not None
@@ -588,7 +592,19 @@ def train(
     model.eval()
     networks.check(history["steps_run"] - max(start, history.get("joint_from") or 0), cfg)
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
+    history["joint_ms_per_step"] = joint_ms_per_step(history)
     return history
+
+
+def joint_ms_per_step(history: dict, settle: int = 50) -> float | None:
+    """Milliseconds per joint-stage step of a training run, from its logged clock, leaving out the stage's first
+    ``settle`` steps (a compiled step compiles there) and any step before a resumed run's start. None when fewer
+    than 20 steps follow."""
+    first = max((history.get("joint_from") or 0) + settle, history.get("clock_from", 0))
+    pairs = [(s, c) for s, c in zip(history["step"], history.get("clock", [])) if s >= first]
+    if len(pairs) < 3 or pairs[-1][0] - pairs[0][0] < 20:
+        return None
+    return round(1000 * (pairs[-1][1] - pairs[0][1]) / (pairs[-1][0] - pairs[0][0]), 2)
 
 
 def resume_checkpoint(
