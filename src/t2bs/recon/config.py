@@ -83,6 +83,10 @@ class OptimConfig:
     lr_refine: float = 1e-3  # Adam learning rate of the RefineMLP
     lr_expression: float = 0.05  # Adam learning rate of the expression weights (DCT coefficients over the frames)
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
+    # Points of the joint stage (fractions, 0 = its start) where each frame's expression weights are picked by render
+    # (recon/expression_pick.py): a search out of the plateau a lid's weight gets stuck on. () = never
+    expression_pick: tuple[float, ...] = (0.0, 0.5)
+    expression_pick_views: int = 3  # views whose image losses a pick compares: the canonical one and its nearest
 
 
 @dataclass
@@ -176,6 +180,7 @@ class VCDGSConfig:
     def __post_init__(self):
         self.data.holdout_views = tuple(self.data.holdout_views)
         self.model.expression_shapes = tuple(self.model.expression_shapes)
+        self.optim.expression_pick = tuple(self.optim.expression_pick)
 
     def replace(self, **fields) -> "VCDGSConfig":
         """A copy with ``fields`` changed: any field of the tree by its name (``knn=4``) or ``method``.
@@ -203,6 +208,7 @@ class VCDGSConfig:
         d = asdict(self)
         d["data"]["holdout_views"] = list(self.data.holdout_views)
         d["model"]["expression_shapes"] = list(self.model.expression_shapes)
+        d["optim"]["expression_pick"] = list(self.optim.expression_pick)
         return d
 
     @classmethod
@@ -233,6 +239,11 @@ class VCDGSConfig:
         o = self.optim
         if o.iterations < 1 or o.global_iters < 0 or o.batch_size < 1:
             raise UserError("iterations and batch_size must be >= 1, global_iters >= 0")
+        if any(not 0.0 <= f < 1.0 for f in o.expression_pick) or o.expression_pick_views < 1:
+            raise UserError(
+                f"expression_pick must be fractions in [0, 1) of the joint stage, got {o.expression_pick}; "
+                "expression_pick_views >= 1"
+            )
         from t2bs.face.arkit import ARKIT_NAMES
 
         unknown = [n for n in self.model.expression_shapes if n not in ARKIT_NAMES]

@@ -283,12 +283,13 @@ class VCDGSModel(nn.Module):
             return self.means.new_zeros(self.frames, 0)
         return frames_from_dct(self.expression_dct, self.expression_coef)
 
-    def rest_at(self, t_idx: torch.Tensor) -> torch.Tensor:
+    def rest_at(self, t_idx: torch.Tensor, expression: torch.Tensor | None = None) -> torch.Tensor:
         """The rest positions the deformation starts from: [N, 3] means, or [B, N, 3] with the expression basis at
-        each frame's weights."""
+        each frame's weights (or at ``expression`` [B, J], one row of weights per item, when given)."""
         if self.expression_coef is None:
             return self.means
-        return self.means + torch.einsum("bj,jnc->bnc", self.expression_weights()[t_idx], self.expression_basis)
+        weights = self.expression_weights()[t_idx] if expression is None else expression
+        return self.means + torch.einsum("bj,jnc->bnc", weights, self.expression_basis)
 
     def splats_at(self, x, q, scales, colors, face_colors=None) -> tuple:
         """The splats of vertices ``x`` [B, N, 3] with quats ``q`` [B, N, 4], ``scales``, ``colors`` [B, N, 3]: the
@@ -319,12 +320,21 @@ class VCDGSModel(nn.Module):
             self.pe_points, self.norm_v(v_idx), self.norm_t(t_idx), self.view_on(v_idx) if use_view else None
         )
 
-    def forward(self, v_idx: torch.Tensor, t_idx: torch.Tensor, refine: bool = True, use_view: bool = True) -> dict:
+    def forward(
+        self,
+        v_idx: torch.Tensor,
+        t_idx: torch.Tensor,
+        refine: bool = True,
+        use_view: bool = True,
+        expression: torch.Tensor | None = None,
+    ) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]
-        (linear), colors [B, N, 3], plus the raw parts the regularisers need."""
+        (linear), colors [B, N, 3], plus the raw parts the regularisers need. ``expression`` [B, J]: expression
+        weights per item instead of the frames' own (the weights' pick tries several on one (view, time): the
+        per-Gaussian RefineMLP then runs once per distinct (view, time))."""
         shared, res = self.control_transforms(v_idx, t_idx, use_view)
         local = shared + res  # [B, P, 6]
-        rest = self.rest_at(t_idx)
+        rest = self.rest_at(t_idx, expression)
         if self.use_lbs:
             x, q = lbs(
                 rest,
@@ -350,7 +360,12 @@ class VCDGSModel(nn.Module):
         col = self.colors[None].expand(len(t_idx), -1, -1)
         offsets = None
         if refine and self.refine is not None:
-            dc, ds, dr = self.refine(self.pe_means, self.norm_v(v_idx), self.norm_t(t_idx))
+            if expression is None:
+                dc, ds, dr = self.refine(self.pe_means, self.norm_v(v_idx), self.norm_t(t_idx))
+            else:  # the offsets depend on (view, time) alone: once per distinct pair
+                pairs, item = torch.unique(v_idx * self.frames + t_idx, return_inverse=True)
+                u_v, u_t = pairs // self.frames, pairs % self.frames
+                dc, ds, dr = (o[item] for o in self.refine(self.pe_means, self.norm_v(u_v), self.norm_t(u_t)))
             col = col + dc
             log_s = log_s + ds
             q = roma.quat_product(q, roma.rotvec_to_unitquat(dr))

@@ -537,6 +537,8 @@ def train(
             history["joint_from"] = step
             networks = _NetworkCheck(model, joint)
         frac = clock.joint_fraction(p)
+        if joint and model.expression_coef is not None:
+            _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step, frac)
         history["steps_run"] = step + 1
         for k, o in opts.items():
             base = groups[k][1]
@@ -605,6 +607,23 @@ def joint_ms_per_step(history: dict, settle: int = 50) -> float | None:
     if len(pairs) < 3 or pairs[-1][0] - pairs[0][0] < 20:
         return None
     return round(1000 * (pairs[-1][1] - pairs[0][1]) / (pairs[-1][0] - pairs[0][0]), 2)
+
+
+def _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step: int, frac: float) -> None:
+    """The picks of config.optim.expression_pick whose joint-stage fraction ``frac`` has reached and that have not
+    run yet (a resumed run keeps its record in ``history["expression_picks"]``): recon/expression_pick.py. The
+    weights' Adam state starts afresh after a pick: its momentum points back to the weights the pick left."""
+    from t2bs.recon.expression_pick import pick_expression_weights
+    from t2bs.recon.hidden_parts import compare_views
+
+    done = history.setdefault("expression_picks", [])
+    due = [f for f in cfg.optim.expression_pick if f <= frac and all(d["at"] != f for d in done)]
+    if not due:
+        return
+    views = compare_views(data.cameras, data.canonical_view, list(data.train_views), cfg.optim.expression_pick_views)
+    report = pick_expression_weights(model, data, cfg, views, refine=True, perceptual=perceptual)
+    opts["expression"].state.clear()
+    done.extend({"at": f, "step": step, **report} for f in due)
 
 
 def resume_checkpoint(
