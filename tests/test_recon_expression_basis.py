@@ -205,3 +205,22 @@ def test_the_pick_moves_weights_off_a_plateau_to_the_frames_truth():
     assert all(any(abs(x - v) < 1e-5 for v in (0.9, *PICK_VALUES)) for x in w)  # a candidate or the old value
     assert np.all(np.abs(w - truth) <= 0.25), (w, truth)
     assert abs(w[-1]) <= 0.25 and w[np.argmax(truth)] >= 0.75  # open at the end, closed at the peak
+
+
+def test_train_picks_the_weights_once_at_each_listed_point_of_the_joint_stage():
+    from t2bs.recon.vcdgs import train
+
+    mesh, grid = lid_scene(frames=4, size=32, views=3)
+    basis = np.full((1, mesh.num_vertices, 3), 0.01, np.float32)
+    for picks, steps in (((0.0, 0.5), [4, 13]), ((), [])):  # the joint stage: steps 4-19
+        cfg = preset(
+            "quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, time_budget_s=0.0,
+            iterations=20, global_iters=4, track_weight=0.0, expression_pick=picks,
+        )  # fmt: skip
+        data = prepare_data(grid, cfg)
+        torch.manual_seed(0)
+        model, _ = build_model(mesh, data, cfg, expression_basis=basis)
+        history = train(model, data, cfg, progress=False)
+        assert [p["step"] for p in history["expression_picks"]] == steps
+        assert [p["at"] for p in history["expression_picks"]] == list(picks)
+        assert all(p["frames"] == 4 and p["shapes"] == 1 for p in history["expression_picks"])

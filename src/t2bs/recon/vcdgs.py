@@ -498,7 +498,8 @@ def train(
     # fused: one kernel per optimiser step instead of ~10 operators per parameter tensor (CPU and CUDA).
     opts = {k: torch.optim.Adam(p, lr=lr, fused=True) for k, (p, lr) in groups.items()}
     warm = warm_up_steps(model, cfg.optim)
-    # clock: seconds since this call began at each logged step (read after a device sync: the loss's float)
+    # clock: training seconds at each logged step, the expression picks' left out (read after a device sync: the
+    # loss's float)
     history = {"step": [], "loss": [], "image": [], "clock": [], "kind": perceptual.kind, "first_image_loss": None}
     started = time.perf_counter()
     start = 0
@@ -538,7 +539,8 @@ def train(
             networks = _NetworkCheck(model, joint)
         frac = clock.joint_fraction(p)
         if joint and model.expression_coef is not None:
-            _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step, frac)
+            # the clock counts steps only: a pick's seconds move its origin
+            started += _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step, frac)
         history["steps_run"] = step + 1
         for k, o in opts.items():
             base = groups[k][1]
@@ -609,21 +611,23 @@ def joint_ms_per_step(history: dict, settle: int = 50) -> float | None:
     return round(1000 * (pairs[-1][1] - pairs[0][1]) / (pairs[-1][0] - pairs[0][0]), 2)
 
 
-def _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step: int, frac: float) -> None:
+def _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step: int, frac: float) -> float:
     """The picks of config.optim.expression_pick whose joint-stage fraction ``frac`` has reached and that have not
     run yet (a resumed run keeps its record in ``history["expression_picks"]``): recon/expression_pick.py. The
-    weights' Adam state starts afresh after a pick: its momentum points back to the weights the pick left."""
+    weights' Adam state starts afresh after a pick: its momentum points back to the weights the pick left. Returns
+    the seconds spent (0.0 when none was due)."""
     from t2bs.recon.expression_pick import pick_expression_weights
     from t2bs.recon.hidden_parts import compare_views
 
     done = history.setdefault("expression_picks", [])
     due = [f for f in cfg.optim.expression_pick if f <= frac and all(d["at"] != f for d in done)]
     if not due:
-        return
+        return 0.0
     views = compare_views(data.cameras, data.canonical_view, list(data.train_views), cfg.optim.expression_pick_views)
     report = pick_expression_weights(model, data, cfg, views, refine=True, perceptual=perceptual)
     opts["expression"].state.clear()
     done.extend({"at": f, "step": step, **report} for f in due)
+    return float(report["seconds"])
 
 
 def resume_checkpoint(
