@@ -616,13 +616,13 @@ def _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, st
     run yet (a resumed run keeps its record in ``history["expression_picks"]``): recon/expression_pick.py. The
     weights' Adam state starts afresh after a pick: its momentum points back to the weights the pick left. Returns
     the seconds spent (0.0 when none was due)."""
+    done = history.setdefault("expression_picks", [])
+    due = [f for f in cfg.optim.expression_pick if f <= frac and all(d["at"] != f for d in done)]
+    if not due:  # every joint step asks: nothing more than this list
+        return 0.0
     from t2bs.recon.expression_pick import pick_expression_weights
     from t2bs.recon.hidden_parts import compare_views
 
-    done = history.setdefault("expression_picks", [])
-    due = [f for f in cfg.optim.expression_pick if f <= frac and all(d["at"] != f for d in done)]
-    if not due:
-        return 0.0
     views = compare_views(data.cameras, data.canonical_view, list(data.train_views), cfg.optim.expression_pick_views)
     report = pick_expression_weights(model, data, cfg, views, refine=True, perceptual=perceptual)
     opts["expression"].state.clear()
