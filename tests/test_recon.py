@@ -298,6 +298,39 @@ def test_losses_dssim_default_and_lpips_weights(tmp_path):
     assert float(perc(b, b)) == pytest.approx(0.0, abs=1e-6) and float(perc(b, 1 - b)) > 0
 
 
+@pytest.mark.parametrize("perceptual", ["dssim", "lpips"])
+@pytest.mark.parametrize("with_mask", [True, False])
+def test_per_item_image_loss_is_the_loss_of_each_item_alone(perceptual, with_mask):
+    from t2bs.recon.losses import image_loss, image_loss_per_item
+
+    cfg = preset("quick")
+    perc = PerceptualLoss("dssim")
+    if perceptual == "lpips":  # random AlexNet-LPIPS weights: the batched call must carry a network too
+        torch.manual_seed(0)
+        perc.lpips, perc.kind = AlexLPIPS(), "lpips"
+    g = torch.Generator().manual_seed(1)
+    b, h, w = 5, 64, 48
+    render = {"rgb": torch.rand(b, h, w, 3, generator=g), "alpha": torch.rand(b, h, w, 1, generator=g)}
+    target = torch.rand(b, h, w, 3, generator=g)
+    mask = (torch.rand(b, h, w, generator=g) > 0.5).float() if with_mask else None
+    got = image_loss_per_item(render, target, mask, perc, cfg)
+    expect = [
+        sum(
+            image_loss(
+                {k: v[i : i + 1] for k, v in render.items()},
+                target[i : i + 1],
+                None if mask is None else mask[i : i + 1],
+                perc,
+                cfg,
+            ).values()
+        )
+        for i in range(b)
+    ]
+    assert got.shape == (b,)
+    torch.testing.assert_close(got, torch.stack(expect), rtol=1e-5, atol=1e-6)
+    assert len(set(got.tolist())) == b  # different items, different losses (not one batch mean repeated)
+
+
 CUDA = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA"))
 
 

@@ -84,8 +84,9 @@ class OptimConfig:
     lr_expression: float = 0.05  # Adam learning rate of the expression weights (DCT coefficients over the frames)
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step
     # Points of the joint stage (fractions, 0 = its start) where each frame's expression weights are picked by render
-    # (recon/expression_pick.py): a search out of the plateau a lid's weight gets stuck on. () = never
-    expression_pick: tuple[float, ...] = (0.0, 0.5)
+    # (recon/expression_pick.py): a search out of the plateau a lid's weight gets stuck on; the last, near the end,
+    # catches weights that drift back onto it (the demo fox's smile kept one eye open without it). () = never
+    expression_pick: tuple[float, ...] = (0.0, 0.5, 0.9)
     expression_pick_views: int = 3  # views whose image losses a pick compares: the canonical one and its nearest
 
 

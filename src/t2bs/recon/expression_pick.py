@@ -40,7 +40,7 @@ def pick_expression_weights(
     applied (as in the training stage the pick belongs to); perceptual: the training's PerceptualLoss; chunk: most
     items rendered at once. Returns {"changed": weights moved, "frames": T, "shapes": J, "seconds": ...}."""
     from t2bs.recon.gaussians import camera_tensors
-    from t2bs.recon.losses import image_loss
+    from t2bs.recon.losses import image_loss_per_item
     from t2bs.recon.vcdgs import batch_targets, render
 
     t0 = time.time()
@@ -64,19 +64,22 @@ def pick_expression_weights(
             deformed = model(v_idx[sl], t_idx[sl], refine=refine, expression=expr[sl])
             r = render(*deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h)
             tgt, msk = batch_targets(data, v_idx[sl], t_idx[sl])
-            for i in range(len(tgt)):  # the training's image terms, per item (they are batch means)
-                one = {k: v[i : i + 1] for k, v in r.items() if torch.is_tensor(v) and v.shape[:1] == tgt.shape[:1]}
-                terms = image_loss(one, tgt[i : i + 1], None if msk is None else msk[i : i + 1], perceptual, cfg)
-                out.append(sum(terms.values()))
-        return torch.stack(out).view(len(views), c).sum(0)
+            out.append(image_loss_per_item(r, tgt, msk, perceptual, cfg))
+        return torch.cat(out).view(len(views), c).sum(0)
 
     for t in range(1, frames):
+        known = None  # the loss of the frame's current weights, once measured: not rendered again for the next shape
         for j in range(shapes):
             current = float(weights[t, j])
             cands = [current] + [v for v in values if abs(v - current) > 1e-6]
             rows = weights[t].repeat(len(cands), 1)
             rows[:, j] = torch.tensor(cands, device=dev)
-            best = int(torch.argmin(losses(t, rows)))  # ties keep the current weight (index 0)
+            if known is None:
+                scores = losses(t, rows)
+            else:
+                scores = torch.cat([known.view(1), losses(t, rows[1:])])
+            best = int(torch.argmin(scores))  # ties keep the current weight (index 0)
+            known = scores[best]
             if best:
                 weights[t, j] = cands[best]
                 changed += 1
