@@ -191,7 +191,8 @@ def image_loss_per_item(render: dict, target: torch.Tensor, mask: torch.Tensor |
 
     ``image_loss``'s terms are means over the batch; this is that loss on a batch of one, for every item, in one
     batched call (torch.func.vmap) instead of a Python loop of B calls: the same numbers to float rounding, 2-3x faster
-    for 18 items of 128 px on 2 cores (0.23 -> 0.07-0.13 s, warm). Used where items are compared with each other (recon/expression_pick.py)."""
+    for 18 items of 128 px on 2 cores (0.23 -> 0.07-0.13 s, warm). Used where items are compared with each other
+    (recon/expression_pick.py)."""
 
     def one(rgb, alpha, tgt, msk):
         terms = image_loss(
