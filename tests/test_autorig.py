@@ -169,6 +169,8 @@ def test_left_is_the_characters_left(head):
     assert look[list(parts["eye_left"]).index(front), 0] > 0  # the left eye looks out to +X
     assert np.abs(rig.morph_targets["eyeLookOutLeft"][parts["head"]]).max() == 0
     assert rig.morph_targets["mouthSmileLeft"][:, 1].sum() > 0  # the corner goes up
+    smile = np.linalg.norm(rig.morph_targets["mouthSmileLeft"] + rig.morph_targets["mouthSmileRight"], axis=1)
+    assert smile[[lm[14], lm[18]]].max() < 0.05 * smile[[lm[12], lm[16]]].min()  # the lips' middle stays
     assert "tongueOut" in rig.missing and "mouthClose" in rig.missing
 
 

@@ -22,7 +22,8 @@ deformer evaluated once at full strength and stored as per-vertex offsets [N, 3]
   is cut where the lower lid is nearer, so weights never leak from one lid to the other.
 - eyeballs (eyeLook*): a separate eyeball part turns rigidly about its centre.
 - mouth, cheeks, brows, nose (mouthSmile*, mouthFrown*, browInnerUp, ...): surface-tangent
-  displacements of a seed point with a smooth geodesic falloff (Wendland-like (1 - t^2)^2).
+  displacements of a seed point with a smooth geodesic falloff (Wendland-like (1 - t^2)^2); a smile's fades out
+  along the lips before the mouth's centre line, whose middle stays.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from t2bs.character.primitives import smoothstep
 from t2bs.errors import UserError
 from t2bs.face.arkit import ARKIT_NAMES as ARKIT_52
 from t2bs.geometry.mesh import Mesh, vertex_normals, welded_components
@@ -241,8 +243,12 @@ def autorig(mesh: Mesh, landmarks: FaceLandmarks, config: AutoRigConfig = AutoRi
         out = np.array([1.0 if side == "left" else -1.0, 0, 0])
         corner = ids[MOUTH_CORNER[side]]
         d_c, _ = surf.distance([corner], limit=0.9 * f.mw * fo)
-        shapes[f"mouthSmile{cap}"] = _push(
-            f, d_c, 0.8 * f.mw * fo, _unit(0.5 * out + 0.75 * up - 0.3 * fwd), config.smile * f.mw
+        # A smile pulls the corner up and back and leaves the middle of the lips still (every smile measured, the
+        # artists' and the generator's: docs/AUTORIG.md), so its weight along the lips fades out before the centre line.
+        lateral = out[0] * (f.v[:, 0] - f.mc[0]) / (0.5 * f.mw)  # 0 at the mouth's centre line, 1 at this corner
+        shapes[f"mouthSmile{cap}"] = (
+            _push(f, d_c, 0.8 * f.mw * fo, _unit(0.5 * out + 0.75 * up - 0.3 * fwd), config.smile * f.mw)
+            * smoothstep(0.25, 0.85, lateral)[:, None]
         )
         shapes[f"mouthFrown{cap}"] = _push(f, d_c, 0.6 * f.mw * fo, _unit(0.3 * out - 0.9 * up), config.frown * f.mw)
         shapes[f"mouthDimple{cap}"] = _push(f, d_c, 0.5 * f.mw * fo, _unit(0.4 * out - 0.9 * fwd), 0.08 * f.mw)
