@@ -22,8 +22,8 @@ deformer evaluated once at full strength and stored as per-vertex offsets [N, 3]
   is cut where the lower lid is nearer, so weights never leak from one lid to the other.
 - eyeballs (eyeLook*): a separate eyeball part turns rigidly about its centre.
 - mouth, cheeks, brows, nose (mouthSmile*, mouthFrown*, browInnerUp, ...): surface-tangent
-  displacements of a seed point with a smooth geodesic falloff (Wendland-like (1 - t^2)^2); a smile's fades out
-  along the lips before the mouth's centre line, whose middle stays.
+  displacements of a seed point with a smooth geodesic falloff (Wendland-like (1 - t^2)^2); a smile's weight also
+  fades out along the lips before the mouth's centre line, so the lips' middle stays still.
 """
 
 from __future__ import annotations
