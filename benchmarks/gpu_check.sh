@@ -57,17 +57,21 @@ tail -2 /tmp/gpu_check_logs/setup.log
 # both failed). So: one run at a time, generous limits, progress bars in the log (--progress) to see where a run
 # that was cut off stood.
 CASE=(--asset facecap --prompts "opening the mouth extremely wide" --defects clean --time-budget 0 --progress)
+PAPER=(--preset paper --size 512 --iterations "${PAPER_STEPS:-2000}")
 
-# 1. The quick preset compiled, end to end (800 steps): does the compiled step train on the GPU (eager there: 58.9 s
-# a video, 33 ms a step, expression / rigid oracle 0.227, docs/BENCHMARKS.md), and its ms per step after compiling
-# ("joint_ms_per_step": the joint stage after its first 50 steps).
-step quick_compile 260 python3 benchmarks/vcdgs.py "${CASE[@]}" --methods full --set compile=true \
-  --json "$OUT/quick_compile.json"
+# What the fourth lease measured (2026-11-27, session 16, H100; docs/BENCHMARKS.md): the paper preset's joint step
+# runs at ~48 ms eager and ~21 ms with compile=true in a real run; before training a paper run spends ~90 s (grid at
+# 512 px, tracks, the static fit), and compiling the step ~2.5 min; neither run at 2000 steps finished inside 200 s
+# (eager) or 257 s (compiled), so no row came back. Next: the compiled run alone, with the time it needs.
+# 1. The paper preset end to end with `compile=true` (512 px grid, 2000 control points, the 2000-step static fit,
+# tracks, hidden-part pick) at $PAPER_STEPS of its 60k steps (the whole schedule, warm-up and decay, in fewer steps):
+# does the compiled step train on the GPU (expression error; a run whose network does not change stops with an
+# error), its measured ms per step ("joint_ms_per_step"), peak GPU memory and the quality at that many steps.
+step paper_compile 420 python3 benchmarks/vcdgs.py "${CASE[@]}" "${PAPER[@]}" --methods full --set compile=true \
+  --json "$OUT/paper_compile.json"
 
-# 2. The paper preset end to end (512 px grid, 2000 control points, the 2000-step static fit, tracks, hidden-part
-# pick), eager, at $PAPER_STEPS of its 60k steps (the whole schedule, warm-up and decay, in fewer steps; its 60k do
-# not fit a call): the measured ms per step of a real run (the profiled 76 ms of step_cost.py syncs every step).
-step paper_eager 220 python3 benchmarks/vcdgs.py "${CASE[@]}" --methods full,rigid --preset paper --size 512 \
-  --iterations "${PAPER_STEPS:-1000}" --json "$OUT/paper_eager.json"
+# 2. With what is left: the same eager (its step: ~48 ms), for the quality at the same steps.
+step paper_eager 300 python3 benchmarks/vcdgs.py "${CASE[@]}" "${PAPER[@]}" --methods full \
+  --json "$OUT/paper_eager.json"
 nvidia-smi --query-gpu=memory.used --format=csv,noheader >>"$OUT/gpu.txt"
 cat "$OUT/summary.txt"
