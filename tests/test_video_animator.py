@@ -118,3 +118,13 @@ def test_head_motion_axes():
     assert np.allclose(yaw[0, 0], [1, 0, 0], atol=1e-6)  # positive yaw turns the face to its left (+X)
     nod = apply_head_motion(v, np.array([[0, 90.0, 0]]), np.zeros(3))
     assert np.allclose(nod[0, 0], [0, -1, 0], atol=1e-6)  # positive pitch nods the face down
+
+
+def test_smoothstep_is_the_hermite_ramp_rising_or_falling():
+    from t2bs.geometry.curves import smoothstep
+
+    x = np.array([-1.0, 0.2, 0.35, 0.5, 1.0])
+    assert smoothstep(0.2, 0.5, x).tolist() == pytest.approx([0.0, 0.0, 0.5, 1.0, 1.0])
+    assert smoothstep(0.5, 0.2, x).tolist() == pytest.approx([1.0, 1.0, 0.5, 0.0, 0.0])  # edges swapped: falling
+    eps = 1e-4  # flat where it starts and stops: no crease in a weight built from it
+    assert smoothstep(0.0, 1.0, eps) < 1e-7 and 1.0 - smoothstep(0.0, 1.0, 1.0 - eps) < 1e-7

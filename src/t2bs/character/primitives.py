@@ -97,11 +97,6 @@ def orient_outward(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return faces[:, ::-1].copy() if volume < 0 else faces
 
 
-def smoothstep(edge0, edge1, x):
-    t = np.clip((np.asarray(x, np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
-    return t * t * (3 - 2 * t)
-
-
 def rotation(axis: np.ndarray, angle) -> np.ndarray:
     """Rodrigues rotation matrices: one axis [3], angles scalar or [N] -> [3, 3] or [N, 3, 3]."""
     axis = np.asarray(axis, np.float64)

@@ -23,12 +23,12 @@ from t2bs.character.primitives import (
     icosphere,
     orient_outward,
     rotate_about,
-    smoothstep,
     surface_along,
     tube,
     uv_sphere,
 )
 from t2bs.character.prompt import parse_prompt, prompt_seed
+from t2bs.geometry.curves import smoothstep
 from t2bs.geometry.mesh import Mesh, merge_meshes, normalize
 
 # Rig amplitudes (radians / head units): large enough to read in a 512 px render.

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from t2bs.character.primitives import smoothstep
+from t2bs.geometry.curves import smoothstep
 from t2bs.errors import UserError
 from t2bs.face.arkit import ARKIT_NAMES as ARKIT_52
 from t2bs.geometry.mesh import Mesh, vertex_normals, welded_components

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from t2bs.errors import UserError
+from t2bs.geometry.curves import smoothstep
 from t2bs.geometry.mesh import Mesh
 from t2bs.video.prompts import EXPRESSIONS
 
@@ -215,15 +216,10 @@ class Animation:
 # Curves over normalised time u in [0, 1]; all are 0 at u = 0 (frame 0 is the neutral asset).
 
 
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3 - 2 * x)
-
-
 def hold(u: np.ndarray, on: float, full: float, release: float, off: float) -> np.ndarray:
     """Trapezoid: rises on..full, holds, falls release..off (smooth edges)."""
-    rise = _smoothstep((u - on) / max(full - on, 1e-6))
-    fall = 1.0 - _smoothstep((u - release) / max(off - release, 1e-6)) if release < 1.0 else np.ones_like(u)
+    rise = smoothstep(0.0, 1.0, (u - on) / max(full - on, 1e-6))
+    fall = 1.0 - smoothstep(0.0, 1.0, (u - release) / max(off - release, 1e-6)) if release < 1.0 else np.ones_like(u)
     return rise * fall
 
 
@@ -239,7 +235,7 @@ def bumps(u: np.ndarray, centres, width: float, amps=None) -> np.ndarray:
 
 def envelope(u: np.ndarray, ramp: float = 0.15) -> np.ndarray:
     """0 at u = 0 rising to 1 at ``ramp``: keeps frame 0 neutral under continuous motions."""
-    return _smoothstep(u / ramp)
+    return smoothstep(0.0, 1.0, u / ramp)
 
 
 def wobble(u: np.ndarray, rng: np.random.Generator, cycles: float = 1.5, terms: int = 3) -> np.ndarray:
