@@ -358,3 +358,21 @@ def test_expression_metrics_of_a_rigid_capture_are_undefined():
     assert m["expr_fraction"] == 0.0 and np.isnan(m["expr_ratio"])
     with pytest.raises(ValueError):
         expression_metrics(rigid[:, :5], rigid, rest)
+
+
+def test_expression_metrics_of_a_region_count_its_vertices_only():
+    """Half the bump on one half of the patch, all of it on the other: each region's numbers are its own, and the
+    regions' errors add up to the whole's (the rigid fits use every vertex either way)."""
+    rest, gt, bump, rot, trans = _turn_plus_bump()
+    left = rest[:, 0] < 0
+    scale = np.where(left, 0.5, 1.0)[None, :, None]
+    pred = np.einsum("tij,tnj->tni", rot, rest[None] + scale * bump) + trans[:, None]
+    whole = expression_metrics(pred, gt, rest)
+    half = expression_metrics(pred, gt, rest, select=left)
+    full = expression_metrics(pred, gt, rest, select=~left)
+    assert half["recovered"] == pytest.approx(0.5, abs=1e-6) and half["expr_ratio"] == pytest.approx(0.5, rel=1e-6)
+    assert full["expr_ratio"] == pytest.approx(0.0, abs=1e-6) and full["cosine"] == pytest.approx(1.0, abs=1e-6)
+    pairs = whole["expr_fraction"] * len(gt) * len(rest)
+    split = (half["expr_p2p"] * half["expr_fraction"] + full["expr_p2p"] * full["expr_fraction"]) * len(gt) * len(rest)
+    assert split == pytest.approx(whole["expr_p2p"] * pairs, rel=1e-9)
+    assert np.isnan(expression_metrics(pred, gt, rest, select=rest[:, 2] < 0)["expr_ratio"])  # the patch is not there

@@ -101,7 +101,12 @@ def geometry_metrics(
 
 
 def expression_metrics(
-    pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, fraction: float = 0.005, diagonal: float | None = None
+    pred: np.ndarray,
+    gt: np.ndarray,
+    rest: np.ndarray,
+    fraction: float = 0.005,
+    diagonal: float | None = None,
+    select: np.ndarray | None = None,
 ) -> dict:
     """The expression recovered, with each frame's head motion taken out of both sides.
 
@@ -123,6 +128,9 @@ def expression_metrics(
       size; a lid closed at the wrong frames shows here and not in ``expr_ratio``). nan when those vertices move in
       every frame.
 
+    ``select`` [N] bool: only these vertices count (a region: the eyes, the mouth); each frame's rigid fit still
+    uses every vertex, so the regions' numbers add up to the whole's.
+
     With no pair above the threshold (a capture without expression) the ratios are nan."""
     pred, gt, rest = np.asarray(pred, np.float64), np.asarray(gt, np.float64), np.asarray(rest, np.float64)
     if pred.shape != gt.shape or gt.ndim != 3 or gt.shape[1:] != rest.shape:
@@ -131,6 +139,8 @@ def expression_metrics(
     e_gt = nonrigid_displacements(rest, gt)[0]
     e_pred = nonrigid_displacements(rest, pred)[0]
     mask = np.linalg.norm(e_gt, axis=-1) > fraction * d  # [T, N]
+    if select is not None:
+        mask &= np.asarray(select, bool)[None]
     if not mask.any():
         nan = float("nan")
         return {
