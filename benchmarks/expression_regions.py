@@ -73,11 +73,11 @@ def main(
     res = reconstruct_grid(mesh, grid, cfg, progress=False)
     gt, pred, rest = grid.gt_vertices, res.vertices, mesh.vertices
     whole = expression_metrics(pred, gt, rest)
-    pairs = whole["expr_fraction"]
+    whole_error = whole["expr_p2p"] * whole["expr_fraction"]  # summed error over all (frame, vertex) pairs, scaled
     out = {"asset": asset, "prompt": prompt, "defects": defects, "options": set_options or [], "whole": whole}
     for name, sel in regions.items():
         m = expression_metrics(pred, gt, rest, select=sel)
-        share = m["expr_p2p"] * m["expr_fraction"] / (whole["expr_p2p"] * pairs) if m["expr_fraction"] else 0.0
+        share = m["expr_p2p"] * m["expr_fraction"] / whole_error if m["expr_fraction"] else 0.0
         out[name] = {
             "vertices": int(sel.sum()),
             "error_share": round(float(share), 3),

@@ -32,9 +32,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from t2bs.geometry.curves import smoothstep
 from t2bs.errors import UserError
 from t2bs.face.arkit import ARKIT_NAMES as ARKIT_52
+from t2bs.geometry.curves import smoothstep
 from t2bs.geometry.mesh import Mesh, vertex_normals, welded_components
 from t2bs.rig.face import FaceLandmarks, fit_sphere
 from t2bs.rig.surface import Surface
