@@ -45,7 +45,7 @@ def main(
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.project import write_json
     from t2bs.recon.config import parse_options, preset
-    from t2bs.recon.expression_basis import expression_basis
+    from t2bs.recon.expression_basis import expression_basis, face_regions
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
@@ -59,15 +59,7 @@ def main(
     if basis is None or info.get("missing"):
         why = info.get("error") or f"no {', '.join(info.get('missing') or EYES + MOUTH)} shape"
         raise UserError(f"{asset}: no expression basis to split the face by: {why}")
-    size = np.linalg.norm(basis, axis=-1)  # [5, N]
-    support = size > 0.02 * size.max(axis=1, keepdims=True)
-    eyes_size = np.where(support[:2], size[:2], 0).max(0)
-    mouth_size = np.where(support[2:], size[2:], 0).max(0)
-    regions = {
-        "eyes": support[:2].any(0) & (eyes_size >= mouth_size),
-        "mouth": support[2:].any(0) & (mouth_size > eyes_size),
-    }
-    regions["elsewhere"] = ~(regions["eyes"] | regions["mouth"])
+    regions = face_regions(basis, info["shapes"])
     with MeshRenderer() as renderer:
         grid = make_grid(mesh, prompt, config=GridConfig(size=128), defects=defect_preset(defects), renderer=renderer)
     res = reconstruct_grid(mesh, grid, cfg, progress=False)

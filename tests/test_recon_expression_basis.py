@@ -224,3 +224,17 @@ def test_train_picks_the_weights_once_at_each_listed_point_of_the_joint_stage():
         assert [p["step"] for p in history["expression_picks"]] == steps
         assert [p["at"] for p in history["expression_picks"]] == list(picks)
         assert all(p["frames"] == 4 and p["shapes"] == 1 for p in history["expression_picks"])
+
+
+def test_face_regions_put_each_vertex_where_it_moves_most():
+    from t2bs.recon.expression_basis import face_regions
+
+    basis = np.zeros((3, 6, 3), np.float32)
+    basis[0, [0, 1, 2], 1] = [-1.0, -0.5, -0.01]  # eyeBlinkLeft; vertex 2 moves 1 %: below the 2 % support
+    basis[1, [1, 3, 4], 0] = [0.2, 1.0, 0.3]  # mouthSmileLeft; vertex 1 moves less than the blink moves it
+    basis[2, 2, 2] = 0.5  # jawOpen: vertex 2 is the mouth's (its blink motion is outside the blink's support)
+    r = face_regions(basis, ["eyeBlinkLeft", "mouthSmileLeft", "jawOpen"])
+    assert r["eyes"].tolist() == [True, True, False, False, False, False]
+    assert r["mouth"].tolist() == [False, False, True, True, True, False]
+    assert r["elsewhere"].tolist() == [False, False, False, False, False, True]
+    assert not face_regions(basis[1:], ["mouthSmileLeft", "jawOpen"])["eyes"].any()

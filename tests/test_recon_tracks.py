@@ -146,3 +146,36 @@ def test_track_loss_is_zero_at_the_true_motion_and_grows_away_from_it():
     assert full > 0.1 and float(track_loss(wrong, x0, vm, ks, flat, v_idx, t_idx, flat_weight=1.0)) == pytest.approx(
         full
     )
+
+
+def test_track_slack_frees_motion_beyond_the_track_along_it_only():
+    """``slack``: flow under-reports a small motion, so going further along the track (up to slack x its length)
+    costs nothing; falling short, going past the slack, or moving across the track costs as without it; a track
+    that does not move (the still head), or whose motion is all the model's head motion, gives no slack."""
+    mesh = sphere_mesh(1)
+    frames = np.stack([mesh.vertices, mesh.vertices + [0.05, 0.0, 0.0]]).astype(np.float32)
+    grid, _ = splat_grid(mesh, frames, size=48, views=3)
+    true = torch.as_tensor(_true_motion(grid, frames))
+    tracks = VertexTracks(true, torch.ones(true.shape[:3]))
+    vm, ks = camera_tensors(grid.cameras)
+    v_idx, t_idx = torch.tensor([0, 1, 2]), torch.tensor([1, 1, 1])
+    x0 = torch.as_tensor(frames[0])[None].expand(3, -1, -1)
+
+    def loss(motion, slack: float, trk=tracks) -> float:
+        return float(
+            track_loss(x0 + torch.as_tensor(motion, dtype=torch.float32), x0, vm, ks, trk, v_idx, t_idx, slack=slack)
+        )
+
+    assert loss([0.05, 0, 0], 1.0) < 1e-6
+    assert loss([0.09, 0, 0], 1.0) < 1e-3 < loss([0.09, 0, 0], 0.0)  # further along the track: free within the slack
+    assert loss([0.02, 0, 0], 1.0) == pytest.approx(loss([0.02, 0, 0], 0.0), rel=1e-4)  # short of it: the same cost
+    assert loss([0.13, 0, 0], 1.0) == pytest.approx(loss([0.08, 0, 0], 0.0), rel=0.05)  # past the slack: from its end
+    across = loss([0.05, 0.03, 0], 1.0)
+    assert across > 0.1 and across == pytest.approx(loss([0.05, 0.03, 0], 0.0), rel=0.05)
+    still = VertexTracks(torch.zeros_like(true), torch.ones(true.shape[:3]))
+    assert loss([0.02, 0, 0], 1.0, still) == pytest.approx(loss([0.02, 0, 0], 0.0, still))
+    # Motion the model's head motion already explains gets no slack: here all of the track is the head's.
+    head = true[v_idx, t_idx]
+    moved = x0 + torch.tensor([0.09, 0.0, 0.0])
+    with_head = float(track_loss(moved, x0, vm, ks, tracks, v_idx, t_idx, slack=1.0, head=head))
+    assert with_head == pytest.approx(loss([0.09, 0, 0], 0.0), rel=1e-4)

@@ -114,6 +114,9 @@ class TrackConfig:
     track_fb: float = 0.008  # forward-backward flow round-trip tolerance of a valid track, same unit
     track_min_texture: float = 0.001  # structure-tensor min eigenvalue from which a track start is "textured"
     track_flat_weight: float = 1.0  # weight of untextured tracks in the joint stage (the warm-up uses textured ones)
+    # joint stage: the model may go up to this many times a track's non-rigid motion further along it at no cost
+    # (flow carries 0.2-0.8 of a blink's or smile's motion: benchmarks/track_accuracy.py); 0 = plain Huber
+    track_slack: float = 1.0
     track_chain: bool = True  # also chain the flow frame to frame, used where the direct 0 -> t flow fails
     track_agree: float = 0.012  # the direct track is kept within this of the chained one, same unit (1.5 px)
     track_flow_size: int = 256  # px: the flow runs on the training images upsampled to this longer side (0 = as is)

@@ -94,3 +94,19 @@ def stretched_faces(vertices: np.ndarray, faces: np.ndarray, basis: np.ndarray, 
         moved = np.linalg.norm(face_area_normals(vertices + shape, faces), axis=1)
         out |= moved > ratio * np.maximum(rest, 1e-20)
     return out
+
+
+def face_regions(basis: np.ndarray, names: list[str], support: float = 0.02) -> dict[str, np.ndarray]:
+    """Split the vertices by what the basis [J, N, 3] (shapes ``names``) moves -> {"eyes", "mouth", "elsewhere": [N]
+    bool}: ``eyes`` those the blinks move, ``mouth`` those the other shapes (jaw, smiles) move; a vertex both move
+    counts where it moves more. A shape moves a vertex by more than ``support`` of its largest motion. For the
+    diagnostics that say where an expression is lost (benchmarks/expression_regions.py, track_accuracy.py)."""
+    size = np.linalg.norm(basis, axis=-1)  # [J, N]
+    size = np.where(size > support * size.max(axis=1, keepdims=True), size, 0.0)
+    blink = np.array([n.startswith("eyeBlink") for n in names])
+    zero = np.zeros(basis.shape[1])
+    eyes_size = size[blink].max(0) if blink.any() else zero
+    mouth_size = size[~blink].max(0) if (~blink).any() else zero
+    eyes = (eyes_size > 0) & (eyes_size >= mouth_size)
+    mouth = (mouth_size > 0) & (mouth_size > eyes_size)
+    return {"eyes": eyes, "mouth": mouth, "elsewhere": ~(eyes | mouth)}

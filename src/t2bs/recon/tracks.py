@@ -228,11 +228,17 @@ def track_loss(
     t_idx: torch.Tensor,
     delta_px: float = 1.0,
     flat_weight: float = 1.0,
+    slack: float = 0.0,
+    head: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Huber (in pixels, / delta so that large errors count as L1) between the projected model
     motion x_t - x_0 ([B, N, 3] each, at (v, t) and (v, 0)) and the tracked motion, averaged over
     valid tracks. viewmats/ks [B, ...] are the batch's cameras. Tracks that start on untextured
-    pixels count ``flat_weight`` times as much as textured ones."""
+    pixels count ``flat_weight`` times as much as textured ones. ``slack``: going further along a track,
+    up to ``slack`` times its length, costs nothing (falling short, overshooting beyond that and moving
+    across it cost as without): the flow under-reports a small expression (benchmarks/track_accuracy.py).
+    ``head`` [B, N, 2]: the projected motion the model's head motion alone gives; the slack then counts along
+    the track's motion beyond it (the expression's), so that the head cannot overshoot its tracks."""
     vi, ti = v_idx.to(tracks.weights.device), t_idx.to(tracks.weights.device)
     w = tracks.weights[vi, ti]  # [B, N]
     if tracks.textured is not None and flat_weight != 1.0:
@@ -240,5 +246,15 @@ def track_loss(
     w = w.to(x_t.device)
     target = tracks.displacement[vi, ti].to(x_t.device)  # [B, N, 2]
     moved = project_points(x_t, viewmats, ks) - project_points(x_0, viewmats, ks)
-    err = torch.nn.functional.huber_loss(moved, target, delta=delta_px, reduction="none").sum(-1) / delta_px
+    diff = moved - target
+    if slack > 0:
+        own = target if head is None else target - head.detach()
+        n = own.norm(dim=-1, keepdim=True)
+        u = own / n.clamp_min(1e-6)
+        over = (diff * u).sum(-1, keepdim=True)  # how far the model goes beyond the track along it
+        diff = diff - u * (over.clamp(0.0, None) - (over - slack * n).clamp(0.0, None))
+    err = (
+        torch.nn.functional.huber_loss(diff, torch.zeros_like(diff), delta=delta_px, reduction="none").sum(-1)
+        / delta_px
+    )
     return (w * err).sum() / w.sum().clamp_min(1.0)

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import roma
 import torch
 import torch.nn.functional as F
 
@@ -66,7 +67,7 @@ from t2bs.recon.gaussians import (
     render,
 )
 from t2bs.recon.losses import IMAGE_TERMS, PerceptualLoss, image_loss
-from t2bs.recon.tracks import VertexTracks, compute_tracks, track_loss
+from t2bs.recon.tracks import VertexTracks, compute_tracks, project_points, track_loss
 
 
 @dataclass
@@ -435,10 +436,27 @@ def step_terms(
             t_idx,
             cfg.tracks.track_delta * max(w, h),
             flat_weight=cfg.tracks.track_flat_weight if joint else 0.0,
+            slack=cfg.tracks.track_slack if joint else 0.0,
+            head=_head_motion_px(model, out, rest_seen[v_idx], vm[v_idx], ks[v_idx], v_idx, t_idx)
+            if joint and cfg.tracks.track_slack > 0
+            else None,
         )
     if joint:
         terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
     return terms
+
+
+@torch.no_grad()
+def _head_motion_px(model: VCDGSModel, out: dict, x0: torch.Tensor, vm, ks, v_idx, t_idx) -> torch.Tensor | None:
+    """[B, N, 2] the image motion of the rest pose as each view sees it (``x0`` [B, N, 3]) under the model's head
+    motion alone, frame 0 -> t (its global SE(3) at t after undoing the one at frame 0); None without a global SE(3)."""
+    if out["g_shared"] is None:
+        return None
+    g = out["g_shared"] + out["g_residual"]  # [B, 6]
+    g0 = sum(model.global_se3(v_idx, torch.zeros_like(t_idx), model.view_on(v_idx)))
+    r, r0 = roma.rotvec_to_rotmat(g[:, :3]), roma.rotvec_to_rotmat(g0[:, :3])
+    x = torch.einsum("bij,bnj->bni", r @ r0.transpose(1, 2), x0 - g0[:, None, 3:]) + g[:, None, 3:]
+    return project_points(x, vm, ks) - project_points(x0, vm, ks)
 
 
 def _train_only_global(model: VCDGSModel, only: bool) -> None:
