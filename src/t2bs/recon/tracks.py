@@ -30,7 +30,8 @@ at 256 px). Thresholds and the returned displacements stay in the given images' 
 A track counts only where the vertex is visible in the rest render of that view (depth test).
 The loss (vcdgs.train) compares the model's projected displacement x(v, t) - x(v, 0) with the
 tracked one, so a per-view shape disagreement at rest (a 4D generator's side view) is not
-mistaken for motion.
+mistaken for motion; going further than a track along its expression motion is free up to a slack
+(``track_loss``), because the flow falls short of small expressions.
 """
 
 from __future__ import annotations
