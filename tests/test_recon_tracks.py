@@ -179,3 +179,41 @@ def test_track_slack_frees_motion_beyond_the_track_along_it_only():
     moved = x0 + torch.tensor([0.09, 0.0, 0.0])
     with_head = float(track_loss(moved, x0, vm, ks, tracks, v_idx, t_idx, slack=1.0, head=head))
     assert with_head == pytest.approx(loss([0.09, 0, 0], 0.0), rel=1e-4)
+
+
+def test_head_motion_px_is_the_global_motion_from_frame_0_projected():
+    """What the slack leaves out: the image motion the model's global SE(3) alone gives, frame 0 -> t, with a view's
+    frame-0 pose undone first (here a per-view offset at frame 0 and a turn plus a shift at t)."""
+    import roma
+
+    from t2bs.eval.scenes import lid_scene
+    from t2bs.recon.config import preset
+    from t2bs.recon.vcdgs import _head_motion_px, build_model, prepare_data
+
+    mesh, grid = lid_scene(frames=4, size=32, views=3)
+    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2)
+    data = prepare_data(grid, cfg)
+    torch.manual_seed(0)
+    model, _ = build_model(mesh, data, cfg)
+    v_idx, t_idx = torch.tensor([1, 2]), torch.tensor([2, 3])
+    g0 = torch.tensor([[0.0, 0.02, 0.0, 0.01, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, -0.02, 0.0]])  # frame 0, per view
+    g = torch.tensor([[0.0, 0.1, 0.0, 0.03, 0.0, 0.0], [0.05, 0.0, 0.0, 0.0, 0.0, 0.02]])  # frame t
+
+    class FrameZero(torch.nn.Module):  # the global motion at frame 0, which is all _head_motion_px asks of it
+        def forward(self, v, t, on):
+            return torch.zeros(len(v), 6), g0.clone()
+
+    model.global_se3 = FrameZero()
+    out = {"g_shared": g, "g_residual": torch.zeros_like(g)}
+    x0 = torch.as_tensor(mesh.vertices, dtype=torch.float32)[None] + torch.tensor(
+        [[[0.0, 0.0, 0.01]], [[0.0, 0.0, 0.0]]]
+    )
+    vm, ks = camera_tensors(data.cameras)
+    got = _head_motion_px(model, out, x0, vm[v_idx], ks[v_idx], v_idx, t_idx)
+    # frame 0's pose undone (inverse of x -> R0 x + t0), then frame t's applied
+    rest = (x0 - g0[:, None, 3:]) @ roma.rotvec_to_rotmat(g0[:, :3])
+    moved = rest @ roma.rotvec_to_rotmat(g[:, :3]).transpose(1, 2) + g[:, None, 3:]
+    want = project_points(moved, vm[v_idx], ks[v_idx]) - project_points(x0, vm[v_idx], ks[v_idx])
+    assert got.shape == (2, mesh.num_vertices, 2) and float(got.abs().max()) > 0.5  # pixels: a visible motion
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+    assert _head_motion_px(model, {"g_shared": None}, x0, vm[v_idx], ks[v_idx], v_idx, t_idx) is None
