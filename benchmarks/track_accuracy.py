@@ -3,7 +3,7 @@
     python3 benchmarks/track_accuracy.py ASSET PROMPT [--set KEY=VALUE ...] [--defects clean] [--json PATH]
 
 Renders the benchmark's grid of ASSET (turtle, facecap, procedural:NAME, ...) animated by PROMPT (128 px, as
-``benchmarks/vcdgs.py``), computes the vertex tracks as a reconstruction does (``recon.tracks.compute_tracks`` with
+``benchmarks/vcdgs.py``), computes the vertex tracks as a reconstruction does (``recon.vcdgs.vertex_tracks`` with
 the quick preset's track settings and any ``--set``; before the lids' tracks are released), and compares them with
 the truth's non-rigid image motion: per training view and frame, the true projected motion less that of the rest pose
 moved by the true head motion (``geometry.rigid``), counted where it exceeds 0.5 px at a vertex visible at rest. Per
@@ -47,8 +47,7 @@ def main(
     from t2bs.project import write_json
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.expression_basis import expression_basis, face_regions
-    from t2bs.recon.tracks import compute_tracks
-    from t2bs.recon.vcdgs import prepare_data
+    from t2bs.recon.vcdgs import prepare_data, vertex_tracks
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -63,21 +62,8 @@ def main(
     with MeshRenderer() as renderer:
         grid = make_grid(mesh, prompt, config=GridConfig(size=size), defects=defect_preset(defects), renderer=renderer)
     data = prepare_data(grid, cfg)
-    side = max(data.size)
     t0 = time.time()
-    tc = cfg.tracks
-    tracks = compute_tracks(
-        mesh,
-        data.images,
-        data.cameras,
-        data.train_views,
-        tc.track_fb * side,
-        tc.track_blur * side,
-        min_texture=tc.track_min_texture,
-        chain=tc.track_chain,
-        agree_px=tc.track_agree * side,
-        flow_size=tc.track_flow_size,
-    )
+    tracks = vertex_tracks(mesh, data, cfg)
     seconds = time.time() - t0
     rest, truth = mesh.vertices, grid.gt_vertices
     head = apply_motion(*robust_rigid_motion(rest, truth), rest)  # [T, N, 3]: the rest pose moved by the head

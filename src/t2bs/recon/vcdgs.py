@@ -782,6 +782,26 @@ def reconstruct_grid(
         torch.set_num_threads(threads)
 
 
+def vertex_tracks(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, progress: bool = False) -> VertexTracks:
+    """The optical-flow tracks of ``data``'s training views as ``cfg.tracks`` asks for them (its pixel thresholds are
+    fractions of the training images' longer side): what a reconstruction trains on, before the lids' release."""
+    side = max(data.size)
+    tc = cfg.tracks
+    return compute_tracks(
+        mesh,
+        data.images,
+        data.cameras,
+        data.train_views,
+        tc.track_fb * side,
+        tc.track_blur * side,
+        progress,
+        min_texture=tc.track_min_texture,
+        chain=tc.track_chain,
+        agree_px=tc.track_agree * side,
+        flow_size=tc.track_flow_size,
+    )
+
+
 def _reconstruct(
     mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file
 ) -> ReconResult:
@@ -800,21 +820,7 @@ def _reconstruct(
     data = prepare_data(grid, cfg)
     lap("data")
     if cfg.tracks.track_weight > 0:
-        side = max(data.size)
-        views = data.train_views
-        data.tracks = compute_tracks(
-            mesh,
-            data.images,
-            data.cameras,
-            views,
-            cfg.tracks.track_fb * side,
-            cfg.tracks.track_blur * side,
-            progress,
-            min_texture=cfg.tracks.track_min_texture,
-            chain=cfg.tracks.track_chain,
-            agree_px=cfg.tracks.track_agree * side,
-            flow_size=cfg.tracks.track_flow_size,
-        )
+        data.tracks = vertex_tracks(mesh, data, cfg, progress)
     lap("tracks")
     basis, expression = expression_basis(mesh, cfg.model.expression_shapes, landmarks_file)
     if basis is not None and data.tracks is not None and cfg.tracks.track_release_lids > 0:
