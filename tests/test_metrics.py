@@ -281,6 +281,29 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[0])["config"]["time_budget_s"] == 0.0
 
 
+def test_benchmark_cli_passes_perfect_tracks_into_the_resume_settings(monkeypatch):
+    """--perfect-tracks reaches run_bench, and rows made with it are not resumed as the flow's (or the reverse)."""
+    import typer
+    from typer.testing import CliRunner
+
+    from t2bs.cli.bench import bench_vcdgs_command
+    from t2bs.eval import bench_vcdgs
+
+    seen = []
+    monkeypatch.setattr(
+        bench_vcdgs,
+        "run_bench",
+        lambda *a, perfect_tracks=False, **kw: seen.append(perfect_tracks) or {"rows": [], "summary": summarise([])},
+    )
+    app = typer.Typer()
+    app.command()(bench_vcdgs_command)
+    assert CliRunner().invoke(app, ["--asset", "facecap", "--perfect-tracks"]).exit_code == 0
+    assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
+    assert seen == [True, False]
+    flow, perfect = (bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, None, p) for p in (False, True))
+    assert perfect == {**flow, "tracks": "true"}
+
+
 def _turn_plus_bump(frames: int = 6, bump_scale: float = 1.0):
     """A sphere (diagonal ~2) turning about y and drifting, with a bump on a small patch of known size:
     (rest [N, 3], vertices [T, N, 3], bump [T, N, 3] in the head's frame, rotations [T, 3, 3], translations [T, 3])."""

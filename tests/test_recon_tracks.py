@@ -217,3 +217,32 @@ def test_head_motion_px_is_the_global_motion_from_frame_0_projected():
     assert got.shape == (2, mesh.num_vertices, 2) and float(got.abs().max()) > 0.5  # pixels: a visible motion
     torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
     assert _head_motion_px(model, {"g_shared": None}, x0, vm[v_idx], ks[v_idx], v_idx, t_idx) is None
+
+
+def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
+    """The benchmark's --perfect-tracks: every trained view's tracks are the true vertices' image motion from frame 0,
+    valid where the flow's are; reconstruct_grid trains on what its tracks_fn makes."""
+    from t2bs.eval.bench_vcdgs import true_tracks
+    from t2bs.eval.scenes import lid_scene
+    from t2bs.recon.config import preset
+    from t2bs.recon.vcdgs import prepare_data, reconstruct_grid, vertex_tracks
+
+    mesh, grid = lid_scene(frames=4, size=32, views=3)
+    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, holdout_views=(2,))
+    data = prepare_data(grid, cfg)
+    flow = vertex_tracks(mesh, data, cfg)
+    perfect = true_tracks(grid.gt_vertices)(mesh, data, cfg)
+    assert data.train_views == [0, 1]
+    torch.testing.assert_close(perfect.weights, flow.weights)
+    true = _true_motion(grid, grid.gt_vertices)
+    torch.testing.assert_close(perfect.displacement[:2], torch.from_numpy(true[:2]), atol=1e-4, rtol=0)
+    assert float(true[:2].max()) > 1.0 and float(perfect.displacement[2].abs().max()) == 0.0  # held out: none
+
+    class Called(Exception):
+        pass
+
+    def spy(*args):
+        raise Called
+
+    with pytest.raises(Called):
+        reconstruct_grid(mesh, grid, cfg, progress=False, tracks_fn=spy)

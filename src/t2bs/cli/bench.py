@@ -86,6 +86,12 @@ def bench_vcdgs_command(
     progress: bool = typer.Option(
         False, "--progress", help="Show each reconstruction's progress bars on stderr (where a cut-off run stopped)."
     ),
+    perfect_tracks: bool = typer.Option(
+        False,
+        "--perfect-tracks",
+        help="Train on the truth's projected vertex motion instead of the optical flow's tracks (same validity): "
+        "what perfect flow would buy.",
+    ),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     result = bench_vcdgs(
@@ -107,6 +113,7 @@ def bench_vcdgs_command(
             set_options=tuple(set_options or ()),
             workers=workers,
             progress=progress,
+            perfect_tracks=perfect_tracks,
         )
     )
     print(markdown(result["rows"]))

@@ -9,7 +9,10 @@ Columns, expression first (geometry.metrics.expression_metrics): each frame's he
 out of the reconstruction, over the vertices whose true non-rigid motion exceeds 0.5 % of the diagonal: expr_p2p,
 expr/rigid (its ratio to the rigid oracle: 1 = no better than perfect head tracking with a neutral face),
 recovered (|recovered motion| / |true motion| there), cosine (its direction) and spurious (false motion of those
-vertices in the frames where the truth leaves them still, in units of the true motion's mean). Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
+vertices in the frames where the truth leaves them still, in units of the true motion's mean). In the JSON only:
+expr_ratio_seen, the same ratio over the vertices some training view sees (p2p_seen's), expr_seen_share, their share
+of the expression error, and expr_seen_pairs, their share of the (frame, vertex) pairs: what the rest costs is lost
+where no input pixel shows it. Then p2p_all / p2p_moving (mean vertex error / bbox diagonal over all (frame, vertex) pairs,
 and over those whose true displacement from the rest pose exceeds 0.5 % of the diagonal), p2p_seen
 (the moving pairs of vertices that some training view sees in some true frame, depth-tested at
 1024 px; seen_fraction: their share. The rest, such as a mouth's back teeth, change no pixel of any
@@ -20,7 +23,7 @@ seconds per reconstruction. Baselines: "static" is the neutral mesh for every fr
 true head motion (its robust rigid fit).
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, expr_p2p,
-expr_rigid, expr_ratio, recovered, cosine, expr_fraction, spurious, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
+expr_rigid, expr_ratio, recovered, cosine, expr_fraction, spurious, expr_ratio_seen, expr_seen_share, expr_seen_pairs, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
 (also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran). The summary holds the mean per (defects, method), the full / static ratio per case,
 and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
 claim as mean expr_p2p / p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
@@ -93,6 +96,26 @@ def case_config_overrides(preset_name: str, iterations: int, options: dict | Non
     return {**(options or {}), **iteration_overrides(preset_name, iterations)}
 
 
+def true_tracks(truth: np.ndarray):
+    """A ``tracks_fn`` for ``reconstruct_grid``: the optical-flow tracks' validity (visible at rest, round trip) with
+    the truth's projected vertex motion in place of the flow's, ``truth`` [T, N, 3] (frame 0 the rest pose): the
+    tracks perfect flow would give, so a run with them bounds what better tracks could buy."""
+    import torch
+
+    def make(mesh, data, cfg, progress=False):
+        from t2bs.recon.vcdgs import vertex_tracks
+
+        tracks = vertex_tracks(mesh, data, cfg, progress)
+        for v in data.train_views:
+            cam = data.cameras[v]
+            at_rest = cam.project(truth[0])[0]
+            for t in range(truth.shape[0]):
+                tracks.displacement[v, t] = torch.from_numpy((cam.project(truth[t])[0] - at_rest).astype(np.float32))
+        return tracks
+
+    return make
+
+
 def run_case(
     name: str,
     mesh,
@@ -106,6 +129,7 @@ def run_case(
     iterations: int = 0,
     progress: bool = False,
     options: dict | None = None,
+    perfect_tracks: bool = False,
 ) -> list[dict]:
     import torch
 
@@ -144,7 +168,9 @@ def run_case(
                 cuda = torch.cuda.is_available() and cfg.runtime.device != "cpu"
                 if cuda:
                     torch.cuda.reset_peak_memory_stats()
-                res = reconstruct_grid(mesh, grid, cfg, progress=progress)
+                res = reconstruct_grid(
+                    mesh, grid, cfg, progress=progress, tracks_fn=true_tracks(gt) if perfect_tracks else None
+                )
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
                 # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
                 extra = {
@@ -157,6 +183,8 @@ def run_case(
                     extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
             geo = geometry_metrics(verts, gt, mesh.vertices, mesh.faces, seen=seen)
             expr = expression_metrics(verts, gt, mesh.vertices)
+            # the same over the vertices some training view sees: what the images could have recovered
+            expr_seen = expression_metrics(verts, gt, mesh.vertices, select=seen)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
             rows.append(
                 {
@@ -170,6 +198,11 @@ def run_case(
                     "seen_fraction": geo["seen_fraction"],
                     "nc": geo["nc"],
                     **expr,
+                    "expr_ratio_seen": expr_seen["expr_ratio"],
+                    "expr_seen_share": expr_seen["expr_p2p"]
+                    * expr_seen["expr_fraction"]
+                    / max(expr["expr_p2p"] * expr["expr_fraction"], 1e-12),
+                    "expr_seen_pairs": expr_seen["expr_fraction"] / max(expr["expr_fraction"], 1e-12),
                     "psnr": psnr(imgs, gt_imgs),
                     "ssim": ssim(imgs.reshape(-1, *imgs.shape[2:]), gt_imgs.reshape(-1, *gt_imgs.shape[2:])),
                     "seconds": round(seconds, 2),
@@ -332,7 +365,13 @@ def full_vs_markdown(full_vs: dict) -> str:
 
 
 def bench_settings(
-    preset_name: str, size: int, frames: int, holdout: tuple[int, ...], iterations: int, options: dict | None
+    preset_name: str,
+    size: int,
+    frames: int,
+    holdout: tuple[int, ...],
+    iterations: int,
+    options: dict | None,
+    perfect_tracks: bool = False,
 ) -> dict:
     """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
     when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
@@ -347,6 +386,7 @@ def bench_settings(
         "iterations": iterations or "preset",
         "options": options or {},
         "config": config,
+        **({"tracks": "true"} if perfect_tracks else {}),  # the truth's image motion instead of the flow's
     }
 
 
@@ -404,6 +444,7 @@ def run_bench(
     options: dict | None = None,
     resume: bool = True,
     workers: int = 1,
+    perfect_tracks: bool = False,
 ) -> dict:
     """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
     and (``resume``) rows already in that file with the same settings are kept instead of recomputed. ``workers``:
@@ -416,7 +457,7 @@ def run_bench(
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
     loaded = [load_asset(a) for a in assets]
-    settings = bench_settings(preset_name, size, frames, holdout, iterations, options)
+    settings = bench_settings(preset_name, size, frames, holdout, iterations, options, perfect_tracks)
     done = previous_rows(json_path, settings) if resume else {}
     print(f"{'asset':>10} | {'prompt':<32} | defect | method    | " + " | ".join(HEADER[4:]), flush=True)
     cases = [(name, mesh, p, d) for name, mesh in loaded for d in defects for p in prompts]
@@ -437,6 +478,7 @@ def run_bench(
         iterations,
         progress,
         options,
+        perfect_tracks,
     )
 
     def ordered() -> list[dict]:
@@ -482,6 +524,9 @@ class BenchVcdgsConfig:
     set_options: tuple[str, ...] = ()  # other VCDGSConfig fields as "KEY=VALUE", for every method
     workers: int = 1  # cases run in this many parallel processes (rows do not change with it)
     progress: bool = False  # each reconstruction's progress bars on stderr (a run cut off by a timeout shows where)
+    # the truth's projected vertex motion in place of the optical flow's tracks (same validity): what perfect flow
+    # would buy, a ceiling for work on the tracks; the JSON's settings say "tracks": "true"
+    perfect_tracks: bool = False
 
 
 def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
@@ -525,4 +570,5 @@ def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
         resume=not config.fresh,
         workers=config.workers,
         progress=config.progress,
+        perfect_tracks=config.perfect_tracks,
     )

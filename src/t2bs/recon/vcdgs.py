@@ -760,11 +760,14 @@ def reconstruct_grid(
     checkpoint: Path | None = None,
     key: str = "",
     landmarks_file: Path | None = None,
+    tracks_fn=None,
 ) -> ReconResult:
     """The whole VCDGS job for one grid: data, static fit, expression basis, control points, training, extraction.
 
     ``landmarks_file``: the user's 20 face points for the expression basis's auto rig (else the face is found on a
-    render of ``mesh``, which must be in the canonical frame)."""
+    render of ``mesh``, which must be in the canonical frame). ``tracks_fn(mesh, data, cfg, progress) ->
+    VertexTracks``: what makes the vertex tracks (None = ``vertex_tracks``, the optical flow; the benchmark's
+    ``--perfect-tracks`` passes the truth's image motion, to measure what better tracks could buy)."""
     from t2bs.errors import UserError
 
     cfg.validate()
@@ -777,7 +780,7 @@ def reconstruct_grid(
     if cfg.runtime.threads > 0:
         torch.set_num_threads(cfg.runtime.threads)
     try:
-        return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key, landmarks_file)
+        return _reconstruct(mesh, grid, cfg, progress, static_targets, checkpoint, key, landmarks_file, tracks_fn)
     finally:
         torch.set_num_threads(threads)
 
@@ -803,7 +806,7 @@ def vertex_tracks(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, progress: bool 
 
 
 def _reconstruct(
-    mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file
+    mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file, tracks_fn=None
 ) -> ReconResult:
     from t2bs.recon.expression_basis import expression_basis, release_lid_tracks
     from t2bs.recon.extract import canonical_vertices, smooth_displacements
@@ -820,7 +823,7 @@ def _reconstruct(
     data = prepare_data(grid, cfg)
     lap("data")
     if cfg.tracks.track_weight > 0:
-        data.tracks = vertex_tracks(mesh, data, cfg, progress)
+        data.tracks = (tracks_fn or vertex_tracks)(mesh, data, cfg, progress)
     lap("tracks")
     basis, expression = expression_basis(mesh, cfg.model.expression_shapes, landmarks_file)
     if basis is not None and data.tracks is not None and cfg.tracks.track_release_lids > 0:
