@@ -256,8 +256,9 @@ def test_benchmark_workers_run_cases_in_processes_and_keep_the_order(tmp_path, m
         bench_vcdgs.run_bench(["a"], ["smiling"], ["clean"], ["full"], workers=0)
 
 
-def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
-    """--time-budget / --track-weight / --seed reach the VCDGS configuration (and so the resume settings); unset, the preset's."""
+def test_benchmark_cli_passes_time_budget_track_weight_seed_and_perfect_tracks(monkeypatch):
+    """--time-budget / --track-weight / --seed reach the VCDGS configuration (and so the resume settings); unset, the
+    preset's. --perfect-tracks reaches run_bench, and rows made with it are not resumed as the flow's (or the reverse)."""
     import typer
     from typer.testing import CliRunner
 
@@ -268,7 +269,8 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     monkeypatch.setattr(
         bench_vcdgs,
         "run_bench",
-        lambda *a, options=None, **kw: seen.append(options) or {"rows": [], "summary": summarise([])},
+        lambda *a, options=None, perfect_tracks=False, **kw: seen.append((options, perfect_tracks))
+        or {"rows": [], "summary": summarise([])},
     )
     app = typer.Typer()
     app.command()(bench_vcdgs_command)
@@ -276,32 +278,16 @@ def test_benchmark_cli_passes_time_budget_track_weight_and_seed(monkeypatch):
     assert CliRunner().invoke(app, ["--asset", "facecap", "--track-weight", "0.5"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
     assert CliRunner().invoke(app, ["--asset", "facecap", "--seed", "1"]).exit_code == 0
-    assert seen == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None, {"seed": 1}]
-    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[3])["config"]["seed"] == 1
-    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, seen[0])["config"]["time_budget_s"] == 0.0
-
-
-def test_benchmark_cli_passes_perfect_tracks_into_the_resume_settings(monkeypatch):
-    """--perfect-tracks reaches run_bench, and rows made with it are not resumed as the flow's (or the reverse)."""
-    import typer
-    from typer.testing import CliRunner
-
-    from t2bs.cli.bench import bench_vcdgs_command
-    from t2bs.eval import bench_vcdgs
-
-    seen = []
-    monkeypatch.setattr(
-        bench_vcdgs,
-        "run_bench",
-        lambda *a, perfect_tracks=False, **kw: seen.append(perfect_tracks) or {"rows": [], "summary": summarise([])},
-    )
-    app = typer.Typer()
-    app.command()(bench_vcdgs_command)
     assert CliRunner().invoke(app, ["--asset", "facecap", "--perfect-tracks"]).exit_code == 0
-    assert CliRunner().invoke(app, ["--asset", "facecap"]).exit_code == 0
-    assert seen == [True, False]
-    flow, perfect = (bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, None, p) for p in (False, True))
-    assert perfect == {**flow, "tracks": "true"}
+    options, perfect = zip(*seen)
+    assert list(options) == [{"time_budget_s": 0.0}, {"track_weight": 0.5}, None, {"seed": 1}, None]
+    assert list(perfect) == [False, False, False, False, True]
+    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, options[3])["config"]["seed"] == 1
+    assert bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, options[0])["config"]["time_budget_s"] == 0.0
+    flow_settings, perfect_settings = (
+        bench_vcdgs.bench_settings("quick", 128, 16, (4, 10), 0, None, p) for p in (False, True)
+    )
+    assert perfect_settings == {**flow_settings, "tracks": "true"}
 
 
 def _turn_plus_bump(frames: int = 6, bump_scale: float = 1.0):

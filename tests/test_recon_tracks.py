@@ -222,7 +222,7 @@ def test_head_motion_px_is_the_global_motion_from_frame_0_projected():
 def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
     """The benchmark's --perfect-tracks: every trained view's tracks are the true vertices' image motion from frame 0,
     valid where the flow's are; reconstruct_grid trains on what its tracks_fn makes."""
-    from t2bs.eval.bench_vcdgs import true_tracks
+    from t2bs.eval.bench_vcdgs import perfect_tracks_fn
     from t2bs.eval.scenes import lid_scene
     from t2bs.recon.config import preset
     from t2bs.recon.vcdgs import prepare_data, reconstruct_grid, vertex_tracks
@@ -231,7 +231,7 @@ def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
     cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, holdout_views=(2,))
     data = prepare_data(grid, cfg)
     flow = vertex_tracks(mesh, data, cfg)
-    perfect = true_tracks(grid.gt_vertices)(mesh, data, cfg)
+    perfect = perfect_tracks_fn(grid.gt_vertices)(mesh, data, cfg)
     assert data.train_views == [0, 1]
     torch.testing.assert_close(perfect.weights, flow.weights)
     true = _true_motion(grid, grid.gt_vertices)

@@ -96,7 +96,7 @@ def case_config_overrides(preset_name: str, iterations: int, options: dict | Non
     return {**(options or {}), **iteration_overrides(preset_name, iterations)}
 
 
-def true_tracks(truth: np.ndarray):
+def perfect_tracks_fn(truth: np.ndarray):
     """A ``tracks_fn`` for ``reconstruct_grid``: the optical-flow tracks' validity (visible at rest, round trip) with
     the truth's projected vertex motion in place of the flow's, ``truth`` [T, N, 3] (frame 0 the rest pose): the
     tracks perfect flow would give, so a run with them bounds what better tracks could buy."""
@@ -169,7 +169,7 @@ def run_case(
                 if cuda:
                     torch.cuda.reset_peak_memory_stats()
                 res = reconstruct_grid(
-                    mesh, grid, cfg, progress=progress, tracks_fn=true_tracks(gt) if perfect_tracks else None
+                    mesh, grid, cfg, progress=progress, tracks_fn=perfect_tracks_fn(gt) if perfect_tracks else None
                 )
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
                 # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
