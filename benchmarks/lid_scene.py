@@ -67,7 +67,7 @@ def main(
     from t2bs.geometry.metrics import expression_metrics
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.extract import canonical_vertices, smooth_displacements
-    from t2bs.recon.vcdgs import build_model, prepare_data, train
+    from t2bs.recon.vcdgs import build_model, deterministic_on_cpu, prepare_data, train
 
     options = parse_options(set_options or [])
     cfg = preset("quick", **{**LID_SETTINGS, "resolution": size, **options})
@@ -79,10 +79,11 @@ def main(
     if cfg.runtime.threads > 0:
         torch.set_num_threads(cfg.runtime.threads)
     data = prepare_data(grid, cfg)
-    model, _ = build_model(mesh, data, cfg)
-    if self_targets_on:
-        self_targets(model, data, grid.gt_vertices)
-    train(model, data, cfg, progress=False)
+    with deterministic_on_cpu(cfg):
+        model, _ = build_model(mesh, data, cfg)
+        if self_targets_on:
+            self_targets(model, data, grid.gt_vertices)
+        train(model, data, cfg, progress=False)
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
     m = expression_metrics(verts, grid.gt_vertices, mesh.vertices)
     lid = mesh.part_mask("eyelid_left")

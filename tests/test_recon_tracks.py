@@ -246,3 +246,27 @@ def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
 
     with pytest.raises(Called):
         reconstruct_grid(mesh, grid, cfg, progress=False, tracks_fn=spy)
+
+
+def test_reconstruction_runs_in_deterministic_mode_on_the_cpu_and_restores_it():
+    """A CPU reconstruction runs with torch's deterministic algorithms (a gather's backward otherwise adds with
+    atomics, so a busy machine changed a seeded run's result), and leaves the caller's setting as it was."""
+    from t2bs.eval.scenes import lid_scene
+    from t2bs.recon.config import preset
+    from t2bs.recon.vcdgs import reconstruct_grid
+
+    mesh, grid = lid_scene(frames=2, size=32, views=3)
+    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, holdout_views=(2,))
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def spy(*args):
+        seen.append(torch.are_deterministic_algorithms_enabled())
+        raise Seen
+
+    assert not torch.are_deterministic_algorithms_enabled()
+    with pytest.raises(Seen):
+        reconstruct_grid(mesh, grid, cfg.replace(device="cpu"), progress=False, tracks_fn=spy)
+    assert seen == [True] and not torch.are_deterministic_algorithms_enabled()
