@@ -25,6 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from t2bs.shared_assets import ENV as SHARED_ENV
+from t2bs.shared_assets import shared_assets_dir
+
 REPO = Path(__file__).resolve().parents[1]
 CASES = (
     "facecap|smiling",
@@ -58,7 +61,9 @@ def _run(checkout: Path, asset: str, prompt: str, options: list[str], env: dict,
         proc = subprocess.run(
             cmd,
             cwd=checkout,
-            env={**os.environ, **env, "PYTHONPATH": str(checkout / "src")},
+            # the base's worktree lives in a temporary folder, where "shared/ beside the checkout" is not: both
+            # versions read the assets this checkout finds
+            env={**os.environ, SHARED_ENV: str(shared_assets_dir()), **env, "PYTHONPATH": str(checkout / "src")},
             stdout=log,
             stderr=subprocess.STDOUT,
         )
