@@ -25,10 +25,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from t2bs.shared_assets import ENV as SHARED_ENV
-from t2bs.shared_assets import shared_assets_dir
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))  # this checkout's rule for the shared assets, whatever t2bs is installed
+
+from t2bs.shared_assets import ENV as SHARED_ENV  # noqa: E402
+from t2bs.shared_assets import shared_assets_dir  # noqa: E402
+
 CASES = (
     "facecap|smiling",
     "facecap|opening the mouth extremely wide",

@@ -225,7 +225,7 @@ def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
     from t2bs.eval.bench_vcdgs import perfect_tracks_fn
     from t2bs.eval.scenes import lid_scene
     from t2bs.recon.config import preset
-    from t2bs.recon.vcdgs import prepare_data, reconstruct_grid, vertex_tracks
+    from t2bs.recon.vcdgs import prepare_data, vertex_tracks
 
     mesh, grid = lid_scene(frames=4, size=32, views=3)
     cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, holdout_views=(2,))
@@ -237,15 +237,27 @@ def test_perfect_tracks_are_the_truth_projected_with_the_flows_validity():
     true = _true_motion(grid, grid.gt_vertices)
     torch.testing.assert_close(perfect.displacement[:2], torch.from_numpy(true[:2]), atol=1e-4, rtol=0)
     assert float(true[:2].max()) > 1.0 and float(perfect.displacement[2].abs().max()) == 0.0  # held out: none
+    _deterministic_when_tracks_are_made(mesh, grid, cfg)  # reconstruct_grid asks its tracks_fn for the tracks
 
-    class Called(Exception):
+
+def _deterministic_when_tracks_are_made(mesh, grid, cfg) -> bool:
+    """Run ``reconstruct_grid`` up to its ``tracks_fn``, which must be called once: whether torch's deterministic
+    algorithms were on at that point."""
+    from t2bs.recon.vcdgs import reconstruct_grid
+
+    seen = []
+
+    class Stop(Exception):
         pass
 
     def spy(*args):
-        raise Called
+        seen.append(torch.are_deterministic_algorithms_enabled())
+        raise Stop
 
-    with pytest.raises(Called):
+    with pytest.raises(Stop):
         reconstruct_grid(mesh, grid, cfg, progress=False, tracks_fn=spy)
+    assert len(seen) == 1
+    return seen[0]
 
 
 def test_reconstruction_runs_in_deterministic_mode_on_the_cpu_and_restores_it():
@@ -253,20 +265,9 @@ def test_reconstruction_runs_in_deterministic_mode_on_the_cpu_and_restores_it():
     atomics, so a busy machine changed a seeded run's result), and leaves the caller's setting as it was."""
     from t2bs.eval.scenes import lid_scene
     from t2bs.recon.config import preset
-    from t2bs.recon.vcdgs import reconstruct_grid
 
     mesh, grid = lid_scene(frames=2, size=32, views=3)
     cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, holdout_views=(2,))
-    seen = []
-
-    class Seen(Exception):
-        pass
-
-    def spy(*args):
-        seen.append(torch.are_deterministic_algorithms_enabled())
-        raise Seen
-
     assert not torch.are_deterministic_algorithms_enabled()
-    with pytest.raises(Seen):
-        reconstruct_grid(mesh, grid, cfg.replace(device="cpu"), progress=False, tracks_fn=spy)
-    assert seen == [True] and not torch.are_deterministic_algorithms_enabled()
+    assert _deterministic_when_tracks_are_made(mesh, grid, cfg.replace(device="cpu"))
+    assert not torch.are_deterministic_algorithms_enabled()

@@ -754,12 +754,12 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
 
 @contextlib.contextmanager
 def deterministic_on_cpu(cfg: VCDGSConfig):
-    """torch's deterministic algorithms while ``cfg`` runs on the CPU, the caller's setting restored after. Why: the backward of a
-    gather (``x[faces]``, ``x[ring]``) adds into ``x``'s gradient with atomic adds from torch's threads, so on a busy
-    machine the float sums change order with the threads' timing, and a seeded reconstruction with them (facecap's
-    clean rows moved by up to 0.04 of the rigid oracle between identical runs, the same case run alone and beside
-    another). Deterministic mode adds in order (~8 % slower on that op alone). Not on CUDA, where it would refuse
-    the ops that have no deterministic kernel."""
+    """torch's deterministic algorithms while ``cfg`` runs on the CPU, the caller's setting restored after. Why: the
+    backward of a gather (``x[faces]``, ``x[ring]``) adds into ``x``'s gradient with atomic adds from torch's threads,
+    so on a busy machine the float sums change order with the threads' timing, and a seeded reconstruction with them
+    (facecap's clean rows moved by up to 0.04 of the rigid oracle between identical runs, the same case run alone and
+    beside another). Deterministic mode adds in order (~8 % slower on that op alone). Not on CUDA, where it would
+    refuse the ops that have no deterministic kernel."""
     before = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(before or _device(cfg).type == "cpu")
     try:
