@@ -205,7 +205,8 @@ def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_ope
     twin = [i for i, p in enumerate(report.parts) if np.array_equal(p, extra)][0]
     assert report.picks[red] == report.picks[twin] >= 0
     assert np.abs(out[:, extra] - (true[:, idx["red"]] - np.array([0.0, 0.0, 0.05]))).max() < 1e-5
-    # A reconstruction where nothing opens: the parts stay out of sight, so nothing is rendered and nothing moves.
+    # A reconstruction where nothing opens: the parts stay out of sight, so nothing is rendered and, without
+    # closed_rigid (its own test below), nothing moves.
     still = np.repeat(mesh.vertices[None], FRAMES, 0)
     out, report = pick_hidden_motions(
         mesh,
@@ -219,6 +220,7 @@ def test_parts_of_one_group_share_its_motion_and_nothing_moves_where_nothing_ope
         clusters=2,
         min_vertices=4,
         renderer=mesh_renderer,
+        closed_rigid=False,
     )
     assert report.opening is None and report.picks == [-1, -1] and report.groups == [] and report.loss_before == 0.0
     assert np.array_equal(out, still)
@@ -242,8 +244,8 @@ def test_robust_rigid_motion_ignores_the_points_that_deform():
 
 
 def test_closed_rigid_gives_hidden_parts_the_head_motion_where_nothing_opens(mesh_renderer):
-    """Nothing opens (the whole scene turns as one, as a head does): by default the hidden parts keep their own
-    (wrong) motion; with closed_rigid they take the seen surface's, which is the true one here."""
+    """Nothing opens (the whole scene turns as one, as a head does): without closed_rigid the hidden parts keep their
+    own (wrong) motion; with it (the default) they take the seen surface's, which is the true one here."""
     mesh, _, _, idx = scene()
     cameras, images = scene_images(mesh_renderer)
     seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
@@ -254,11 +256,11 @@ def test_closed_rigid_gives_hidden_parts_the_head_motion_where_nothing_opens(mes
     recon[:, idx["red"]] -= s[:, None, None] * np.array([0.0, DROP, 0.0], np.float32)  # dragged by a blend
     recon[:, idx["head"][-6:]] += s[:, None, None] * np.array([0.0, 0.03, 0.0], np.float32)  # its top row deforms
     args = (mesh, recon, seen, images, cameras, [2], [1])
-    kept, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
-    assert report.opening is None and not report.closed_rigid and np.array_equal(kept, recon)
-    out, report = pick_hidden_motions(
-        *args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, closed_rigid=True
+    kept, report = pick_hidden_motions(
+        *args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer, closed_rigid=False
     )
+    assert report.opening is None and not report.closed_rigid and np.array_equal(kept, recon)
+    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
     assert report.opening is None and report.closed_rigid and report.summary()["moved"] == 2
     hidden = np.concatenate([idx["red"], idx["green"]])
     assert np.abs(out[:, hidden] - true[:, hidden]).max() < 1e-5

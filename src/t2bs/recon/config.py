@@ -134,7 +134,7 @@ class HiddenPartsConfig:
     hidden_pick_min_vertices: int = 20  # smaller hidden parts keep their own motion
     hidden_pick_side_fraction: float = 0.9  # a part lies on one side of the opening when this share of it does
     hidden_pick_even: float = 0.7  # parts spread evenly across the opening (neither side above this) form one group
-    hidden_pick_closed_rigid: bool = False  # where nothing opens, hidden parts take the head's robust rigid motion
+    hidden_pick_closed_rigid: bool = True  # where nothing opens, hidden parts take the head's robust rigid motion
 
 
 @dataclass

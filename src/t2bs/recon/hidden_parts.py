@@ -21,10 +21,10 @@ normal along their separation, and each hidden part goes by where it lies: wholl
 wholly on the other, across it evenly (a mouth bag, whose floor and roof move apart), or across it
 but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
 all its parts, by coordinate descent over the groups. Where nothing opens, no render can tell
-their motions apart: by default nothing moves; with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``,
-opt-in) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
+their motions apart: with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``, on by
+default) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
 head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
-drags them along while they should follow the skull.
+drags them along while they should follow the skull; without it nothing moves.
 On by default (``config.hidden_parts.hidden_pick``).
 """
 
@@ -258,7 +258,7 @@ def pick_hidden_motions(
     seed: int = 0,
     renderer=None,
     sweeps: int = 4,
-    closed_rigid: bool = False,
+    closed_rigid: bool = True,
     side_fraction: float = 0.9,
     even: float = 0.7,
 ) -> tuple[np.ndarray, HiddenPick]:
@@ -268,7 +268,7 @@ def pick_hidden_motions(
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
     moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
-    seen vertices instead of keeping its own. ``side_fraction``, ``even``: the grouping rule's thresholds
+    seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping rule's thresholds
     (``group_parts``). Returns (vertices, HiddenPick)."""
     import time
 
