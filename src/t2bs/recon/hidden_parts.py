@@ -24,9 +24,7 @@ all its parts, by coordinate descent over the groups. Where nothing opens, no re
 their motions apart: with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``, on by
 default) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
 head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
-drags them along while they should follow the skull; without it nothing moves. The same holds where
-something opens that shows none of the parts (a blink's lids parting from an eye): the renders with the
-parts on their own motion and on the head's are the same, so they take the head's.
+drags them along while they should follow the skull; without it nothing moves.
 On by default (``config.hidden_parts.hidden_pick``).
 """
 
@@ -62,7 +60,7 @@ class HiddenPick:
     opening: Opening | None = (
         None  # None: nothing opens, so every part keeps its own motion (or, closed_rigid, the head's)
     )
-    closed_rigid: bool = False  # no render shows the parts (nothing opens, or not where they are): the head's motion
+    closed_rigid: bool = False  # nothing opens and every part took the seen surface's robust rigid motion
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
@@ -269,9 +267,8 @@ def pick_hidden_motions(
     ``views`` x ``frames`` (module docstring). ``seen`` [N] bool: vertices some training view sees
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
-    moves nothing. ``closed_rigid``: where nothing opens, or the renders at ``views`` x ``frames`` are the same with
-    every hidden part on its own motion and on the head's (an opening that shows none of them), every hidden part
-    takes ``robust_rigid_motion`` of the seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping rule's thresholds
+    moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
+    seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping rule's thresholds
     (``group_parts``). Returns (vertices, HiddenPick)."""
     import time
 
@@ -282,14 +279,11 @@ def pick_hidden_motions(
     report = HiddenPick(parts=hidden_parts(mesh, seen, min_vertices), views=list(views))
     report.picks = [-1] * len(report.parts)
     report.opening = find_opening(mesh.vertices, out, seen) if report.parts else None
-    rigid = None  # [T, N, 3] with every hidden part on the head's motion (closed_rigid)
-    if report.parts and closed_rigid and seen.sum() >= 3:
+    if report.parts and report.opening is None and closed_rigid and seen.sum() >= 3:
         head_rots, head_trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
-        rigid = out.copy()
         for ix in report.parts:
-            rigid[:, ix] = apply_motion(head_rots, head_trans, mesh.vertices[ix])
-        if report.opening is None:
-            out, report.closed_rigid = rigid, True
+            out[:, ix] = apply_motion(head_rots, head_trans, mesh.vertices[ix])
+        report.closed_rigid = True
     rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed) if report.opening else ([], [])
     if not len(rots):
         report.seconds = time.time() - t0
@@ -308,15 +302,7 @@ def pick_hidden_motions(
             return trial
 
         base = render_losses(r, mesh, out, images, cameras, views, frames, shading)
-        report.loss_before = report.loss_after = float(base.mean())
-        if rigid is not None and np.array_equal(
-            render_losses(r, mesh, rigid, images, cameras, views, frames, shading), base
-        ):
-            # The opening shows none of the hidden parts, on their own motion or on the head's (lids that part from
-            # an eye in a blink, far from the teeth): no render can tell their motion, as where nothing opens.
-            out, report.closed_rigid = rigid, True
-            report.seconds = time.time() - t0
-            return out, report
+        report.loss_before = float(base.mean())
         choice = [-1] * len(report.groups)
         report.observable = [False] * len(report.groups)
         for sweep in range(sweeps):
