@@ -268,8 +268,8 @@ def pick_hidden_motions(
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
     moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
-    seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping rule's thresholds
-    (``group_parts``). Returns (vertices, HiddenPick)."""
+    seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping
+    rule's thresholds (``group_parts``). Returns (vertices, HiddenPick)."""
     import time
 
     from t2bs.render.mesh_renderer import MeshRenderer
