@@ -56,22 +56,32 @@ tail -2 /tmp/gpu_check_logs/setup.log
 # its 512 px grid, tracks and static fit. Two processes must not build gsplat at once (they share its build folder:
 # both failed). So: one run at a time, generous limits, progress bars in the log (--progress) to see where a run
 # that was cut off stood.
-CASE=(--asset facecap --prompts "opening the mouth extremely wide" --defects clean --time-budget 0 --progress)
+CASE=(--asset facecap --defects clean --time-budget 0 --progress)
 PAPER=(--preset paper --size 512 --iterations "${PAPER_STEPS:-2000}")
 
 # What the fourth lease measured (2026-11-27, session 16, H100; docs/BENCHMARKS.md): the paper preset's joint step
 # runs at ~48 ms eager and ~21 ms with compile=true in a real run; before training a paper run spends ~90 s (grid at
 # 512 px, tracks, the static fit), and compiling the step ~2.5 min; neither run at 2000 steps finished inside 200 s
-# (eager) or 257 s (compiled), so no row came back. Next: the compiled run alone, with the time it needs.
+# (eager) or 257 s (compiled), so no row came back. So now: the compiled paper preset alone, both cases of the issue
+# (mouth wide, then smiling) in one process, so that the second compiles from inductor's warm cache; each case's row
+# is written to the JSON as it finishes. No expression basis on both sides (MediaPipe is absent there); the CPU rows
+# to compare with are run with the same --set expression_shapes=.
+# The fifth lease (2026-11-27, session 21, H100) ran exactly this: the compiled step then trained nothing (torch
+# 2.11's guards missed the networks' requires_grad flip at the joint stage; reproduced and fixed on the CPU with torch
+# 2.11), after 125 s of compiling, 43 s of recompiling at the joint stage and 23 ms a joint step. The fixed step is
+# two graphs instead of 16; this script is unchanged so that the next lease measures the same thing.
 # 1. The paper preset end to end with `compile=true` (512 px grid, 2000 control points, the 2000-step static fit,
 # tracks, hidden-part pick) at $PAPER_STEPS of its 60k steps (the whole schedule, warm-up and decay, in fewer steps):
 # does the compiled step train on the GPU (expression error; a run whose network does not change stops with an
-# error), its measured ms per step ("joint_ms_per_step"), peak GPU memory and the quality at that many steps.
-step paper_compile 420 python3 benchmarks/vcdgs.py "${CASE[@]}" "${PAPER[@]}" --methods full --set compile=true \
-  --json "$OUT/paper_compile.json"
+# error), its measured ms per step ("joint_ms_per_step"), seconds per phase, peak GPU memory and the quality.
+step paper_compile $(( END - $(date +%s) - 5 )) python3 benchmarks/vcdgs.py "${CASE[@]}" "${PAPER[@]}" \
+  --prompts "opening the mouth extremely wide,smiling" --methods full,rigid --set compile=true \
+  --set expression_shapes= --json "$OUT/paper_compile.json"
 
-# 2. With what is left: the same eager (its step: ~48 ms), for the quality at the same steps.
-step paper_eager 300 python3 benchmarks/vcdgs.py "${CASE[@]}" "${PAPER[@]}" --methods full \
-  --json "$OUT/paper_eager.json"
+# 2. With what is left (>= 100 s): the compiled paper joint step's operator and kernel calls on CUDA.
+if [ $(( END - $(date +%s) )) -ge 100 ]; then
+  step step_cost_cuda 300 python3 benchmarks/step_cost.py --device cuda --presets paper --stages joint \
+    --set compile=true --json "$OUT/step_cost_cuda_compile.json"
+fi
 nvidia-smi --query-gpu=memory.used --format=csv,noheader >>"$OUT/gpu.txt"
 cat "$OUT/summary.txt"

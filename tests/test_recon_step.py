@@ -139,6 +139,35 @@ def test_compiled_step_equals_the_eager_step():
         assert float((g - ref_grads[name]).abs().max()) / scale < 1e-3, name
 
 
+def test_the_compiled_step_is_two_graphs_around_the_rasterizer():
+    """torch.compile traces the step as one graph before the rasterizer and one after (the LBS blend as a gather
+    while tracing: the sparse matmul cut it into 16), so nothing but the rasterizer runs eagerly between them."""
+    model, data, cfg, vm, ks, perc, rest = _scene()
+    v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
+    for joint in (False, True):
+        torch._dynamo.reset()
+        seen = torch._dynamo.explain(step_terms)(model, data, cfg, v_idx, t_idx, vm, ks, perc, joint, rest_seen=rest)
+        assert (seen.graph_count, seen.graph_break_count) == (2, 1), (joint, seen.break_reasons)
+        assert "_render_uncompiled" in str(seen.break_reasons[0].reason)
+
+
+def test_the_warm_up_step_gives_the_deformation_network_no_gradient_by_its_call():
+    """The global warm-up trains T_global alone, and says so in the call (``deform_grad``): with every parameter
+    requiring a gradient, the warm-up step's loss reaches T_global and not the DeformMLP, the joint step's both.
+    A requires_grad flip alone is not enough under torch.compile: torch 2.11's guards missed it behind the step's
+    graph breaks, and a compiled run on an H100 (and on this CPU with torch 2.11) trained nothing (issue 36)."""
+    model, data, cfg, vm, ks, perc, rest = _scene()
+    v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
+    assert all(p.requires_grad for p in model.parameters())
+    for joint in (False, True):
+        _, grads = _loss_and_grads(
+            model, lambda: sum(step_terms(model, data, cfg, v_idx, t_idx, vm, ks, perc, joint, rest_seen=rest).values())
+        )
+        deform = [g for n, g in grads.items() if n.startswith("deform.") and g.abs().max() > 0]
+        moved = [g for n, g in grads.items() if n.startswith("global_se3.") and g.abs().max() > 0]
+        assert bool(deform) == joint and moved, (joint, len(deform), len(moved))
+
+
 def test_a_training_run_that_leaves_the_network_unchanged_is_an_error(monkeypatch):
     """train(): joint steps that never change the deformation network (a broken step: CUDA graphs on an H100 did
     that silently) end in one UserError, not in a model that looks trained; a working run passes the check."""

@@ -327,12 +327,19 @@ class VCDGSModel(nn.Module):
         refine: bool = True,
         use_view: bool = True,
         expression: torch.Tensor | None = None,
+        deform_grad: bool = True,
     ) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]
         (linear), colors [B, N, 3], plus the raw parts the regularisers need. ``expression`` [B, J]: expression
         weights per item instead of the frames' own (the weights' pick tries several on one (view, time): the
-        per-Gaussian RefineMLP then runs once per distinct (view, time))."""
+        per-Gaussian RefineMLP then runs once per distinct (view, time)). ``deform_grad`` False: no gradient reaches
+        the DeformMLP (the global warm-up trains T_global alone)."""
         shared, res = self.control_transforms(v_idx, t_idx, use_view)
+        if not deform_grad:
+            # Said in the call, not by the parameters' requires_grad: torch 2.11's guards missed a requires_grad flip
+            # behind a graph break, so a compiled warm-up's gradient-free graph of the DeformMLP ran on through the
+            # joint stage and nothing trained (issue 36, on an H100).
+            shared, res = shared.detach(), res.detach()
         local = shared + res  # [B, P, 6]
         rest = self.rest_at(t_idx, expression)
         if self.use_lbs:
@@ -344,7 +351,9 @@ class VCDGSModel(nn.Module):
                 local[..., 3:],
                 self.neighbours,
                 self.weights,
-                self.blend,
+                # Traced by torch.compile: the gather, which dynamo follows (the sparse matmul cuts the step into 16
+                # graphs, 2 with the gather: one before the rasterizer, one after; CPU ms per step the same).
+                None if torch.compiler.is_compiling() else self.blend,
             )
         else:
             rot = roma.rotvec_to_rotmat(local[..., :3])  # [B, N, 3, 3]: each Gaussian about itself

@@ -420,7 +420,7 @@ def step_terms(
     the rest pose as each view sees it (``_rest_as_seen``), needed when the track term is on. One deformation and one
     rasterization call cover the whole batch. -> {name: scalar tensor}; the loss is their sum."""
     w, h = data.size
-    out = model(v_idx, t_idx, refine=joint)
+    out = model(v_idx, t_idx, refine=joint, deform_grad=joint)
     r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h)
     tgt, msk = batch_targets(data, v_idx, t_idx)
     terms = image_loss(r, tgt, msk, perceptual, cfg)
@@ -460,18 +460,11 @@ def _head_motion_px(model: VCDGSModel, out: dict, x0: torch.Tensor, vm, ks, v_id
     return project_points(x, vm, ks) - project_points(x0, vm, ks)
 
 
-def _train_only_global(model: VCDGSModel, only: bool) -> None:
-    """The warm-up optimises T_global (and the expression weights, ``WARM_UP_GROUPS``) alone: the networks get no
-    gradient then, so the backward pass skips them (their optimisers do not step in the warm-up either way)."""
-    for mod in (model.deform, model.refine):
-        if mod is not None:
-            mod.requires_grad_(not only)
-
-
 class _NetworkCheck:
     """A training run whose joint steps leave the deformation network exactly as it was has trained nothing (a
-    compiled step replayed as CUDA graphs did that on an H100, silently: issue 36): ``check`` says so instead of
-    returning an untrained model. Snapshots the network's weights when the joint stage starts."""
+    compiled step replayed as CUDA graphs did that on an H100, silently, and ``compile=true`` with torch 2.11: issue
+    36): ``check`` says so instead of returning an untrained model. Snapshots the network's weights when the joint
+    stage starts."""
 
     def __init__(self, model: VCDGSModel, joint: bool):
         self.params = list(model.deform.parameters()) if joint and model.deform is not None else []
@@ -538,7 +531,6 @@ def train(
     model.train()
     clock = _Schedule(cfg.optim.iterations, warm, deadline)
     joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
-    _train_only_global(model, not joint)
     history["steps_run"] = start
     terms_fn = step_terms
     if cfg.runtime.compile:
@@ -553,7 +545,6 @@ def train(
             break
         if not joint and clock.joint(p):
             joint = True
-            _train_only_global(model, False)
             history["joint_from"] = step
             networks = _NetworkCheck(model, joint)
         frac = clock.joint_fraction(p)
@@ -611,7 +602,6 @@ def train(
                     },
                     tmp,
                 )
-    _train_only_global(model, False)
     model.eval()
     networks.check(history["steps_run"] - max(start, history.get("joint_from") or 0), cfg)
     history["final_image_loss"] = float(np.mean(history["image"][-5:])) if history["image"] else float("nan")
