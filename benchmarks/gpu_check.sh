@@ -8,6 +8,15 @@
 #                  glcontext, gsplat 1.5.3 source wheel: built just in time for the GPU)
 #   .gl/           Debian's libegl1/libgl1/libglvnd0/... (headless OpenGL for the mesh renderer)
 #   .carry/assets/ facecap.glb (the shared asset)
+# made here, in the repository root, in ~1 minute (session 21's commands; the machine has torch 2.11, numpy, scipy,
+# opencv, imageio, typer, rich, tqdm, pillow, jaxtyping and ninja already):
+#   printf '/.whl/\n/.gl/\n/.carry/\n' >> .git/info/exclude
+#   python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#     --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl \
+#     roma pytorch-msssim pygltflib dataclasses-json deprecated 'marshmallow<4' trimesh moderngl glcontext gsplat==1.5.3
+#   mkdir -p .gl /tmp/amd64/partial; o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+#   apt-get $o update; (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+#   mkdir -p .carry/assets && cp ../shared/assets/facecap.glb .carry/assets/
 # and writes JSON and logs ($OUT/logs.txt) to $OUT. Results: docs/BENCHMARKS.md.
 set -u
 OUT=${OUT:-/tmp/gpu_check}
