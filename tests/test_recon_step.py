@@ -118,7 +118,8 @@ def test_batched_step_equals_the_mean_of_per_pair_steps():
 
 @pytest.mark.slow
 def test_compiled_step_equals_the_eager_step():
-    """config.runtime.compile: the same loss terms and gradients as the eager step (torch.compile, rasterizer excluded)."""
+    """config.runtime.compile: the same loss terms and gradients as the eager step (torch.compile, the rasterizer
+    excluded)."""
     model, data, cfg, vm, ks, perc, rest = _scene()
     v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
     compiled = torch.compile(step_terms, dynamic=False)

@@ -396,8 +396,8 @@ def warm_up_steps(model: VCDGSModel, optim) -> int:
 
 @torch.compiler.disable
 def _render_uncompiled(*args):
-    """``render``, kept out of a compiled step (config.runtime.compile): the rasterizers are C++/CUDA kernels already, and
-    tracing into gsplat's Python recompiles at every new number of tile intersections."""
+    """``render``, kept out of a compiled step (config.runtime.compile): the rasterizers are C++/CUDA kernels already,
+    and tracing into gsplat's Python recompiles at every new number of tile intersections."""
     return render(*args)
 
 
