@@ -71,11 +71,10 @@ PAPER=(--preset paper --size 512 --iterations "${PAPER_STEPS:-2000}")
 # What the fourth lease measured (2026-11-27, session 16, H100; docs/BENCHMARKS.md): the paper preset's joint step
 # runs at ~48 ms eager and ~21 ms with compile=true in a real run; before training a paper run spends ~90 s (grid at
 # 512 px, tracks, the static fit), and compiling the step ~2.5 min; neither run at 2000 steps finished inside 200 s
-# (eager) or 257 s (compiled), so no row came back. So now: the compiled paper preset alone, both cases of the issue
-# (mouth wide, then smiling) in one process, so that the second compiles from inductor's warm cache; each case's row
-# is written to the JSON as it finishes. No expression basis on both sides (MediaPipe is absent there); the CPU rows
-# to compare with are run with the same --set expression_shapes=.
-# The fifth lease (2026-11-27, session 21, H100) ran this with both cases in one process: the compiled step then
+# (eager) or 257 s (compiled), so no row came back. So now: the compiled paper preset alone, one process per case,
+# each row written to its JSON as it finishes; later runs compile from inductor's warm on-disk cache. No expression
+# basis (MediaPipe is absent there); the CPU rows to compare with are run with the same --set expression_shapes=.
+# The fifth lease (2026-11-27, session 21, H100) ran both cases in one process: the compiled step then
 # trained nothing (torch 2.11's guards missed the networks' requires_grad flip at the joint stage; reproduced and fixed
 # on the CPU with torch 2.11), after 125 s of compiling, 43 s of recompiling at the joint stage and 23 ms a joint step.
 # The fixed step is two graphs instead of 16 (the rasterizer between them). The same flip is the likeliest reason why

@@ -352,7 +352,8 @@ class VCDGSModel(nn.Module):
                 self.neighbours,
                 self.weights,
                 # Traced by torch.compile: the gather, which dynamo follows (the sparse matmul cuts the step into 16
-                # graphs, 2 with the gather: one before the rasterizer, one after; CPU ms per step the same).
+                # graphs, 2 with the gather: one before the rasterizer, one after; CPU ms per step the same). Chosen
+                # here, not in lbs: dynamo breaks the trace wherever the sparse tensor is touched, even as an argument.
                 None if torch.compiler.is_compiling() else self.blend,
             )
         else:
