@@ -13,9 +13,11 @@ from t2bs.recon.extract import canonical_vertices
 from t2bs.recon.vcdgs import build_model, param_groups, prepare_data
 
 
-def _lid_model(basis):
+def _lid_model(basis, **options):
     mesh, grid = lid_scene(frames=4, size=32, views=3)
-    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, time_budget_s=0.0)
+    cfg = preset(
+        "quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, time_budget_s=0.0, **options
+    )
     data = prepare_data(grid, cfg)
     torch.manual_seed(0)
     model, _ = build_model(mesh, data, cfg, expression_basis=basis)
@@ -53,8 +55,8 @@ def test_the_vertices_an_expression_moves_do_not_steer_the_head_motion():
     basis = np.zeros((1, n, 3), np.float32)
     moved = np.arange(n) < n // 3
     basis[0, moved, 1] = np.linspace(1.0, 0.2, moved.sum())  # one shape: the first third moves (all > 5 % of its max)
-    mesh, model, cfg = _lid_model(basis)
-    assert cfg.model.global_from_still == 0.05
+    assert _lid_model(basis)[1].global_blocked is None  # opt-in: off by default
+    mesh, model, cfg = _lid_model(basis, global_from_still=0.05)
     assert torch.equal(model.global_blocked[0, :, 0], torch.as_tensor(moved))
     with torch.no_grad():  # a head motion that is not the identity, so its gradient is not special
         for p in model.global_se3.parameters():
@@ -78,7 +80,7 @@ def test_the_vertices_an_expression_moves_do_not_steer_the_head_motion():
         assert torch.equal(model(v, t)["means"], x)
     # 0 turns it off; a basis that moves every vertex leaves nothing to steer the head, so it is off there too.
     assert _lid_model(basis)[1]._expression_vertices(0.0) is None
-    assert _lid_model(np.ones((1, n, 3), np.float32))[1].global_blocked is None
+    assert _lid_model(np.ones((1, n, 3), np.float32), global_from_still=0.05)[1].global_blocked is None
 
 
 def test_a_trained_model_with_a_basis_loads_back(tmp_path):

@@ -61,8 +61,9 @@ class ModelConfig:
     view_residual_static: bool = True  # view residuals depend on the view only (False: on (view, time), the paper's)
     # The global SE(3) learns only from the vertices that no expression-basis shape moves by more than this fraction of
     # its largest motion (the skull, not the lids, lips and jaw), so a small expression is not taken as a head turn
-    # (0 = from every vertex; without a basis it has no effect; docs/VCDGS_NOTES.md, "The head motion from the still")
-    global_from_still: float = 0.05
+    # (opt-in, 0 = from every vertex: clean grids gain, paper-like defects do not; docs/VCDGS_NOTES.md, "The head motion
+    # from the still vertices"). Without a basis it has no effect.
+    global_from_still: float = 0.0
     # Auto-rig shapes (ARKit names) whose per-frame weights the fit also learns, under the networks' motion (ours,
     # recon/expression_basis.py; () = the paper's model)
     expression_shapes: tuple[str, ...] = (
