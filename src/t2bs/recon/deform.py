@@ -23,6 +23,7 @@ import roma
 import torch
 from torch import nn
 
+from t2bs.recon.expression_basis import shape_support
 from t2bs.recon.lbs import apply_rigid, blend_matrix, lbs
 
 
@@ -285,9 +286,8 @@ class VCDGSModel(nn.Module):
         motion; None without a basis, at ``fraction`` 0, or where that is every vertex (nothing would steer the head)."""
         if self.expression_basis is None or fraction <= 0:
             return None
-        reach = self.expression_basis.norm(dim=-1)  # [J, N]
-        moved = (reach > fraction * reach.amax(dim=1, keepdim=True).clamp_min(1e-12)).any(0)
-        return None if bool(moved.all()) else moved[None, :, None]
+        moved = shape_support(self.expression_basis.cpu().numpy(), fraction).any(0)  # [N]
+        return None if moved.all() else torch.from_numpy(moved)[None, :, None].to(self.expression_basis.device)
 
     def expression_weights(self) -> torch.Tensor:
         """[T, J] weight of each expression shape per frame (0 at frame 0); [T, 0] without a basis."""

@@ -96,13 +96,19 @@ def stretched_faces(vertices: np.ndarray, faces: np.ndarray, basis: np.ndarray, 
     return out
 
 
+def shape_support(basis: np.ndarray, fraction: float) -> np.ndarray:
+    """[J, N] bool: the vertices each shape of ``basis`` [J, N, 3] moves by more than ``fraction`` of its own largest
+    vertex motion (a shape that moves nothing supports no vertex)."""
+    size = np.linalg.norm(basis, axis=-1)  # [J, N]
+    return size > fraction * size.max(axis=1, keepdims=True)
+
+
 def face_regions(basis: np.ndarray, names: list[str], support: float = 0.02) -> dict[str, np.ndarray]:
     """Split the vertices by what the basis [J, N, 3] (shapes ``names``) moves -> {"eyes", "mouth", "elsewhere": [N]
     bool}: ``eyes`` those the blinks move, ``mouth`` those the other shapes (jaw, smiles) move; a vertex both move
     counts where it moves more. A shape moves a vertex by more than ``support`` of its largest motion. For the
     diagnostics that say where an expression is lost (benchmarks/expression_regions.py, track_accuracy.py)."""
-    size = np.linalg.norm(basis, axis=-1)  # [J, N]
-    size = np.where(size > support * size.max(axis=1, keepdims=True), size, 0.0)
+    size = np.where(shape_support(basis, support), np.linalg.norm(basis, axis=-1), 0.0)  # [J, N]
     blink = np.array([n.startswith("eyeBlink") for n in names])
     zero = np.zeros(basis.shape[1])
     eyes_size = size[blink].max(0) if blink.any() else zero
