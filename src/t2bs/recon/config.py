@@ -84,7 +84,10 @@ class OptimConfig:
     canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)
     lr_deform: float = 2e-3  # Adam learning rate of the DeformMLP / per-Gaussian MLP
     lr_global: float = 5e-3  # Adam learning rate of the global SE(3) tables
-    lr_global_joint: float = 1.0  # < 1: the global SE(3)'s rate decays over the warm-up to this fraction (subtle faces)
+    # The global SE(3)'s rate decays over the warm-up to this fraction and on from there (1 = no extra decay): at the
+    # full rate Adam's steps keep the head motion noisier than a blink moves a lid (docs/VCDGS_NOTES.md, "The head
+    # motion's rate, again")
+    lr_global_joint: float = 0.1
     lr_refine: float = 1e-3  # Adam learning rate of the RefineMLP
     lr_expression: float = 0.05  # Adam learning rate of the expression weights (DCT coefficients over the frames)
     lr_final_ratio: float = 0.1  # exponential learning-rate decay to this fraction by the last step

@@ -358,11 +358,12 @@ def _lr_factor(group: str, joint: bool, warm_fraction: float, joint_fraction: fl
     """The learning rate of parameter ``group`` as a fraction of its base rate at this point of the schedule.
 
     Every group decays exponentially to ``lr_final_ratio`` over the joint stage. With ``lr_global_joint`` < 1 the
-    global SE(3) also decays over the warm-up, to that fraction, and continues from there. Why it is an option, off
-    by default (docs/VCDGS_NOTES.md, "The head motion takes the blink's signal"): at the full rate the per-frame head
-    motion keeps taking part of a blink's image change (0.1: facecap clean blinking 0.984 -> 0.903 of the rigid
-    oracle, 7 of 8 clean cases better), but it must move freely to give back a large expression the warm-up took
-    as head motion (facecap mouth wide 0.227 -> 0.351, seeds 0 and 1)."""
+    global SE(3) also decays over the warm-up, to that fraction, and continues from there. Why (0.1, the default since
+    session 23; docs/VCDGS_NOTES.md, "The head motion's rate, again"): Adam moves each of the head motion's coefficients
+    by about its rate a step, so at the full rate the per-frame head motion stays noisier than a blink moves a lid and
+    keeps taking part of a small expression's image change (clean table 0.449 -> 0.434 of the rigid oracle, paper-like
+    defects 0.526 -> 0.516). Before the expression basis carried the jaw it cost a wide mouth (0.227 -> 0.351); with it,
+    no longer (0.215 -> 0.202)."""
     decay = optim.lr_final_ratio**joint_fraction if joint else 1.0
     if group != "global":
         return decay
