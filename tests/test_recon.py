@@ -477,6 +477,14 @@ def test_schedule_compresses_warmup_and_decay_into_the_budget(monkeypatch):
     assert s.joint(p) and abs(s.joint_fraction(p) - 0.0625) < 1e-9
     now[0] = 1010.0
     assert s.progress(9) >= 1.0 and s.joint_fraction(s.progress(9)) == 1.0
+    # Less than a step ahead, the clock does not count: a run inside its budget is the steps' schedule, bit for bit.
+    t = vcdgs._Schedule(iterations=100, warm=20, deadline=1110.0)
+    now[0] = 1010.0 + 1e-3  # the first step starts a millisecond after the clock did
+    assert t.progress(0) == 0.0 and t.warm_fraction(t.progress(0)) == 0.0
+    now[0] = 1010.0 + 1.1  # 1.1 % of the time at step 1: still within one step of 1 %
+    assert t.progress(1) == 0.01
+    now[0] = 1010.0 + 2.5  # 2.5 %, more than a step ahead of step 1: the clock leads
+    assert abs(t.progress(1) - 0.025) < 1e-9
     plain = vcdgs._Schedule(iterations=100, warm=20, deadline=None)  # steps only
     assert not plain.joint(plain.progress(19)) and plain.joint(plain.progress(20))
     assert abs(plain.joint_fraction(plain.progress(60)) - 0.5) < 1e-9

@@ -339,7 +339,12 @@ class _Schedule:
     def progress(self, step: int) -> float:
         p = step / max(self.iterations, 1)
         if self.deadline is not None:
-            p = max(p, (time.time() - self.t0) / max(self.deadline - self.t0, 1e-6))
+            elapsed = (time.time() - self.t0) / max(self.deadline - self.t0, 1e-6)
+            # The clock takes over only once it is a whole step ahead of the steps: a run inside its budget follows
+            # the steps alone, so it (and a resumed run) does not depend on how fast its first steps happened to be
+            # (at step 0 the clock is always a little ahead, which moved the head motion's warm-up rate).
+            if elapsed >= (step + 1) / max(self.iterations, 1):
+                p = elapsed
         return p
 
     def joint(self, p: float) -> bool:
