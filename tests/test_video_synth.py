@@ -99,11 +99,25 @@ def test_determinism(turtle, grids, mesh_renderer):
     assert not np.array_equal(other.frames, paper.frames)
 
 
+def test_one_defect_presets_set_one_strength():
+    from t2bs.video.defects import STRENGTHS
+
+    for name in STRENGTHS:
+        alone, without = preset(f"only_{name}"), preset(f"paper_without_{name}", seed=3)
+        assert {k: getattr(alone, k) for k in STRENGTHS} == {k: float(k == name) for k in STRENGTHS}
+        assert {k: getattr(without, k) for k in STRENGTHS} == {k: float(k != name) for k in STRENGTHS}
+        assert without.seed == 3
+    assert preset("Only_Blur", blur=0.5).blur == 0.5  # names are case-blind, overrides still apply
+    assert preset("paper", flicker=0.0).flicker == 0.0  # an override of a preset's own strength
+
+
 def test_bad_settings():
     with pytest.raises(UserError, match="--views must be odd"):
         make_grid(None, "blinking", config=GridConfig(views=4))
-    with pytest.raises(UserError, match="unknown defect preset 'extreme'; valid: clean, mild, paper"):
+    with pytest.raises(UserError, match="unknown defect preset 'extreme'; valid: clean, mild, paper, only_<defect>"):
         preset("extreme")
+    with pytest.raises(UserError, match="unknown defect preset 'only_noise'"):
+        preset("only_noise")
 
 
 def test_videos_command_resumes(tmp_path, turtle, capsys):

@@ -17,7 +17,11 @@ def videos_command(
         "all", help="all, a comma list of expressions, or a prompt-list file (.txt one per line, .json)."
     ),
     samples: int = typer.Option(SAMPLES_PER_PROMPT, help="Videos per prompt (paper: 3)."),
-    defects: str = typer.Option("mild", help="Simulated 4D-generator defects on the side views: clean, mild, paper."),
+    defects: str = typer.Option(
+        "mild",
+        help="Simulated 4D-generator defects on the side views: clean, mild, paper; only_<defect> or "
+        "paper_without_<defect> for one defect (geometry, color, lighting, texture_noise, blur, flicker).",
+    ),
     frames: int = typer.Option(16, help="Frames per video T (paper's models: 16-49)."),
     size: int = typer.Option(512, help="Frame side in pixels (128 for quick runs)."),
     views: int = typer.Option(ORBIT_VIEWS, help="Orbit views over azimuth -60..60 (odd; paper: 15)."),

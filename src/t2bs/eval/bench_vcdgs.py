@@ -507,7 +507,7 @@ def run_bench(
 class BenchVcdgsConfig:
     asset: tuple[str, ...] = ()  # turtle, facecap, a glb/vrm with morph targets, procedural:PROMPT; () = DEFAULT_ASSETS
     prompts: str = ",".join(DEFAULT_PROMPTS)  # comma-separated expression prompts
-    defects: str = "clean"  # comma-separated defect presets: clean, mild, paper
+    defects: str = "clean"  # comma-separated defect presets: clean, mild, paper, only_<defect>, paper_without_<defect>
     methods: str = "full,static,rigid"  # comma-separated names of ALL_METHODS, or "all"
     preset_name: str = "quick"  # VCDGS preset: quick | paper
     size: int = 128  # grid frame size in pixels

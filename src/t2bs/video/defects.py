@@ -63,16 +63,36 @@ PRESETS: dict[str, dict[str, float]] = {
 PRESET_ALIASES = {"paper-like": "paper", "none": "clean"}
 
 
+# One defect at a time, to find which one costs a reconstruction what (docs/VCDGS_NOTES.md, "Which defect"):
+# ``only_<defect>`` is that defect at paper strength alone, ``paper_without_<defect>`` the paper preset less it.
+ONE_DEFECT = {"only_": 1.0, "paper_without_": 0.0}
+
+
+def _strengths(key: str) -> dict[str, float] | None:
+    """The strengths a preset name sets, or None for an unknown name."""
+    if key in PRESETS:
+        return PRESETS[key]
+    for prefix, alone in ONE_DEFECT.items():
+        if key.startswith(prefix) and key[len(prefix) :] in STRENGTHS:
+            return {k: alone if k == key[len(prefix) :] else 1.0 - alone for k in STRENGTHS}
+    return None
+
+
 def preset(name: str, seed: int = 0, **overrides: float) -> DefectConfig:
-    """DefectConfig for ``clean``, ``mild`` or ``paper`` (alias ``paper-like``), with overrides."""
+    """DefectConfig for ``clean``, ``mild`` or ``paper`` (alias ``paper-like``), ``only_<defect>`` or
+    ``paper_without_<defect>`` (<defect>: a name in STRENGTHS), with overrides."""
     key = PRESET_ALIASES.get(name.lower(), name.lower())
-    if key not in PRESETS:
-        raise UserError(f"unknown defect preset {name!r}; valid: {', '.join(PRESETS)}")
+    strengths = _strengths(key)
+    if strengths is None:
+        raise UserError(
+            f"unknown defect preset {name!r}; valid: {', '.join(PRESETS)}, only_<defect>, paper_without_<defect> "
+            f"(<defect>: {', '.join(STRENGTHS)})"
+        )
     names = {f.name for f in fields(DefectConfig)}
     bad = [k for k in overrides if k not in names]
     if bad:
         raise UserError(f"unknown defect setting {bad[0]!r}; valid: {', '.join(sorted(names))}")
-    cfg = replace(DefectConfig(seed=seed), **PRESETS[key], **overrides)
+    cfg = replace(DefectConfig(seed=seed), **{**strengths, **overrides})
     for k in STRENGTHS:
         if getattr(cfg, k) < 0:
             raise UserError(f"defect strength {k} must be >= 0, got {getattr(cfg, k)}")
