@@ -63,18 +63,17 @@ PRESETS: dict[str, dict[str, float]] = {
 PRESET_ALIASES = {"paper-like": "paper", "none": "clean"}
 
 
-# One defect at a time, to find which one costs a reconstruction what (docs/VCDGS_NOTES.md, "Which defect"):
-# ``only_<defect>`` is that defect at paper strength alone, ``paper_without_<defect>`` the paper preset less it.
-ONE_DEFECT = {"only_": 1.0, "paper_without_": 0.0}
-
-
 def _strengths(key: str) -> dict[str, float] | None:
-    """The strengths a preset name sets, or None for an unknown name."""
+    """The strengths a preset name sets, or None for an unknown name. One defect at a time, to find which one costs a
+    reconstruction what (docs/VCDGS_NOTES.md, "Which defect"): ``only_<defect>`` is that defect at its paper strength
+    alone, ``paper_without_<defect>`` the paper preset less it."""
     if key in PRESETS:
         return PRESETS[key]
-    for prefix, alone in ONE_DEFECT.items():
-        if key.startswith(prefix) and key[len(prefix) :] in STRENGTHS:
-            return {k: alone if k == key[len(prefix) :] else 1.0 - alone for k in STRENGTHS}
+    paper = PRESETS["paper"]
+    if key.startswith("only_") and key[5:] in STRENGTHS:
+        return {k: paper[k] if k == key[5:] else 0.0 for k in STRENGTHS}
+    if key.startswith("paper_without_") and key[14:] in STRENGTHS:
+        return {k: 0.0 if k == key[14:] else paper[k] for k in STRENGTHS}
     return None
 
 
