@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from t2bs.geometry.camera import ORBIT_VIEWS
+from t2bs.video.defects import STRENGTHS
 from t2bs.video.prompts import SAMPLES_PER_PROMPT
 from t2bs.video.stage import VideosConfig, run
 
@@ -20,7 +21,7 @@ def videos_command(
     defects: str = typer.Option(
         "mild",
         help="Simulated 4D-generator defects on the side views: clean, mild, paper; only_<defect> or "
-        "paper_without_<defect> for one defect (geometry, color, lighting, texture_noise, blur, flicker).",
+        f"paper_without_<defect> for one defect ({', '.join(STRENGTHS)}).",
     ),
     frames: int = typer.Option(16, help="Frames per video T (paper's models: 16-49)."),
     size: int = typer.Option(512, help="Frame side in pixels (128 for quick runs)."),

@@ -70,10 +70,11 @@ def _strengths(key: str) -> dict[str, float] | None:
     if key in PRESETS:
         return PRESETS[key]
     paper = PRESETS["paper"]
-    if key.startswith("only_") and key[5:] in STRENGTHS:
-        return {k: paper[k] if k == key[5:] else 0.0 for k in STRENGTHS}
-    if key.startswith("paper_without_") and key[14:] in STRENGTHS:
-        return {k: 0.0 if k == key[14:] else paper[k] for k in STRENGTHS}
+    alone, without = key.removeprefix("only_"), key.removeprefix("paper_without_")
+    if alone != key and alone in STRENGTHS:
+        return {k: paper[k] if k == alone else 0.0 for k in STRENGTHS}
+    if without != key and without in STRENGTHS:
+        return {k: 0.0 if k == without else paper[k] for k in STRENGTHS}
     return None
 
 
