@@ -28,8 +28,36 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))  # this checkout's rule for the shared assets, whatever t2bs is installed
 
+from t2bs.openmp import CHOSEN  # noqa: E402
 from t2bs.shared_assets import ENV as SHARED_ENV  # noqa: E402
 from t2bs.shared_assets import shared_assets_dir  # noqa: E402
+
+# The OpenMP wait policy this process's t2bs chose (t2bs/openmp.py) is left out of the versions' environments: each
+# version's own t2bs chooses its own (an older one sets OMP_WAIT_POLICY=PASSIVE, which a GOMP_SPINCOUNT passed on
+# from here would override). A policy the user set stays.
+_OWN_POLICY = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", CHOSEN) if CHOSEN in os.environ else ()
+
+
+def _environment(checkout: Path, extra: dict) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in _OWN_POLICY}
+    # the base's worktree lives in a temporary folder, where "shared/ beside the checkout" is not: both versions read
+    # the assets this checkout finds
+    return {**env, SHARED_ENV: str(shared_assets_dir()), **extra, "PYTHONPATH": str(checkout / "src")}
+
+
+def _build_kernel(checkout: Path, log) -> None:
+    """Build (or find) the checkout's C++ splat kernel before anything is timed: a first build takes minutes and
+    would count as the first case's seconds."""
+    code = "from t2bs.render.splat.cpu import load_kernel, kernel_error; load_kernel(); print(kernel_error())"
+    subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=checkout,
+        env=_environment(checkout, {}),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        check=True,
+    )
+
 
 CASES = (
     "facecap|smiling",
@@ -63,9 +91,7 @@ def _run(checkout: Path, asset: str, prompt: str, options: list[str], env: dict,
         proc = subprocess.run(
             cmd,
             cwd=checkout,
-            # the base's worktree lives in a temporary folder, where "shared/ beside the checkout" is not: both
-            # versions read the assets this checkout finds
-            env={**os.environ, SHARED_ENV: str(shared_assets_dir()), **env, "PYTHONPATH": str(checkout / "src")},
+            env=_environment(checkout, env),
             stdout=log,
             stderr=subprocess.STDOUT,
         )
@@ -112,6 +138,8 @@ def main() -> None:
         versions.append((name, REPO, [o for o in opts.split(",") if o], {"TORCHINDUCTOR_CACHE_DIR": cache}))
     results = {"base": sha, "cases": []}
     with open(a.log, "a") as log:
+        for checkout in {base, REPO}:
+            _build_kernel(checkout, log)
         for case in a.case or CASES:
             asset, _, prompt = case.partition("|")
             row = {"asset": asset, "prompt": prompt, "versions": {}}

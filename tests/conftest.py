@@ -6,8 +6,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads (see t2bs/__init__.py)
-
 import pytest
 
 from t2bs.shared_assets import shared_asset, shared_assets_dir  # noqa: E402

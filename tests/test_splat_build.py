@@ -31,7 +31,7 @@ def fake_build(monkeypatch, tmp_path):
     monkeypatch.setattr(cpu, "_error", None)
     calls = []
 
-    def compile_(path):
+    def compile_(path, openmp=True):
         calls.append(path)
         (path / "t2bs_splat_cpu.so").write_bytes(b"")
         return object()
@@ -57,10 +57,26 @@ def test_build_message_only_when_it_compiles(fake_build, capsys, monkeypatch):
 
 
 def test_failed_build_says_why(fake_build, capsys, monkeypatch):
-    def broken(path):
+    def broken(path, openmp=True):
         raise RuntimeError("Error building extension 't2bs_splat_cpu'\nc++: not found")
 
     monkeypatch.setattr(cpu, "_compile", broken)
     assert cpu.load_kernel() is None
     assert cpu.kernel_error() == "RuntimeError: c++: not found"
     assert capsys.readouterr().err.splitlines() == [cpu.BUILD_MESSAGE]
+
+
+def test_a_compiler_without_openmp_builds_on_plain_threads(fake_build, capsys, monkeypatch):
+    built = []
+
+    def no_openmp(path, openmp=True):
+        if openmp:
+            raise RuntimeError("Error building extension 't2bs_splat_cpu'\nc++: error: unsupported option '-fopenmp'")
+        built.append(path)
+        (path / "t2bs_splat_cpu.so").write_bytes(b"")
+        return object()
+
+    monkeypatch.setattr(cpu, "_compile", no_openmp)
+    assert cpu.load_kernel() is not None and cpu.kernel_error() is None
+    assert built == [cpu.build_directory(openmp=False)] and built[0] != cpu.build_directory()
+    assert capsys.readouterr().err.splitlines() == [cpu.BUILD_MESSAGE]  # announced once, not per attempt

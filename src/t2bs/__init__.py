@@ -1,10 +1,9 @@
 """t2bs: text (or any character mesh) to an animatable blendshape rig (T2Bs, ICCV 2025)."""
 
-import os as _os
+from t2bs.openmp import choose_wait_policy as _choose_wait_policy
 
-# OpenMP threads that spin while idle make 2-thread torch runs 3-10x slower on a busy 2-core
-# machine (measured: 140 ms -> 20 ms per 128 px splat render). Must be set before torch loads;
-# a user's own setting wins.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before torch loads: spin briefly when this process has the cores to itself, wait passively when they are busy
+# (t2bs/openmp.py has the measurements); a user's own OMP_WAIT_POLICY / GOMP_SPINCOUNT wins.
+_choose_wait_policy()
 
 __version__ = "0.1.0"

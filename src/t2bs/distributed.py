@@ -24,6 +24,7 @@ from typing import Callable
 from tqdm import tqdm
 
 from t2bs.errors import UserError
+from t2bs.openmp import shared_cores
 from t2bs.project import is_done, mark_done
 
 EXECUTORS = ("local", "process", "ray")
@@ -136,7 +137,7 @@ def _run_pool(pending: list[Job], workers: int, retries: int, finish) -> None:
 
     threads = max(1, (os.cpu_count() or 1) // workers)
     attempts = {j.name: 0 for j in pending}
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+    with shared_cores(), ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
         futures = {pool.submit(execute_attempt, j, threads): j for j in pending}
         while futures:
             finished, _ = wait(futures, return_when=FIRST_COMPLETED)

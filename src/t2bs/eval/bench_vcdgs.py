@@ -423,7 +423,9 @@ def _finished_cases(fn, cases: list[tuple], workers: int, *args):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    from t2bs.openmp import shared_cores
+
+    with shared_cores(), ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(fn, *case, *args) for case in cases]
         for fut in as_completed(futures):
             yield fut.result()

@@ -13,9 +13,9 @@ camera matrices). Backends:
 - "dense": every Gaussian against every pixel, pure PyTorch; a benchmark baseline only.
 - "auto": gsplat for CUDA tensors when it is importable, else "cpu".
 
-Speed (2-core CPU, see benchmarks/raster.py): the kernel runs on torch.get_num_threads()
-threads. On an oversubscribed machine set OMP_WAIT_POLICY=PASSIVE before torch is imported:
-spinning OpenMP workers made the surrounding 2-thread torch ops 3-10x slower (measured).
+Speed (2-core CPU, see benchmarks/raster.py): the kernel runs on torch.get_num_threads() threads, torch's own
+OpenMP team (parallel.h). How those threads wait between operators is chosen when t2bs is imported, before torch
+loads (t2bs/openmp.py: a short spin when the process has the cores to itself, passive when they are shared).
 """
 
 from __future__ import annotations

@@ -26,6 +26,8 @@ _HERE = Path(__file__).parent
 _SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp"]
 _HEADERS = [_HERE / "parallel.h"]
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17", "-pthread"]
+# The kernels share torch's OpenMP threads (parallel.h says why); a compiler without OpenMP builds them on std::threads.
+_OPENMP = ["-fopenmp"]
 
 _lock = threading.Lock()
 _module = None
@@ -41,7 +43,7 @@ def torch_installation() -> str:
     return f"{Path(torch.__file__).resolve().parent}|{torch.__version__}|{py}"
 
 
-def build_directory() -> Path:
+def build_directory(openmp: bool = True) -> Path:
     """$XDG_CACHE_HOME/t2bs/torch_extensions/<one folder per (sources, flags, torch installation)>.
 
     torch rebuilds when a listed source changes, not when a header does: the folder names them all. It also names the
@@ -49,7 +51,7 @@ def build_directory() -> Path:
     or two environments (venvs, conda) on one machine would otherwise rebuild the one folder in turn.
     """
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    where = f"{_HERE.resolve()}|{torch_installation()}|{' '.join(_CFLAGS)}".encode()
+    where = f"{_HERE.resolve()}|{torch_installation()}|{' '.join(_flags(openmp))}".encode()
     digest = hashlib.sha1(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS) + where).hexdigest()[:10]
     return base / "t2bs" / "torch_extensions" / f"splat_cpu_torch{torch.__version__.replace('+', '_')}_{digest}"
 
@@ -59,15 +61,19 @@ def is_built(path: Path) -> bool:
     return any(path.glob("t2bs_splat_cpu*.so"))
 
 
-def _compile(path: Path):
+def _flags(openmp: bool) -> list[str]:
+    return _CFLAGS + (_OPENMP if openmp else [])
+
+
+def _compile(path: Path, openmp: bool = True):
     """torch.utils.cpp_extension.load: builds into ``path`` with ninja when needed, then imports the module."""
     from torch.utils.cpp_extension import load
 
     return load(
         name="t2bs_splat_cpu",
         sources=[str(p) for p in _SOURCES],
-        extra_cflags=_CFLAGS,
-        extra_ldflags=["-pthread"],
+        extra_cflags=_flags(openmp),
+        extra_ldflags=["-pthread"] + (_OPENMP if openmp else []),
         build_directory=str(path),
         verbose=False,
     )
@@ -80,14 +86,18 @@ def load_kernel():
         return _module
     with _lock:
         if _module is None and _error is None:
-            try:
-                path = build_directory()
-                path.mkdir(parents=True, exist_ok=True)
-                if not is_built(path):  # one line, so a silent minute inside a progress bar has a reason
-                    print(BUILD_MESSAGE, file=sys.stderr, flush=True)
-                _module = _compile(path)
-            except Exception as exc:  # compiler missing, headers missing, link error, ...
-                _error = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc}"
+            announced = False
+            for openmp in (True, False):  # a compiler without OpenMP (clang on macOS) still builds it, on std::threads
+                try:
+                    path = build_directory(openmp)
+                    path.mkdir(parents=True, exist_ok=True)
+                    if not is_built(path) and not announced:  # one line: a silent minute in a progress bar has a reason
+                        print(BUILD_MESSAGE, file=sys.stderr, flush=True)
+                        announced = True
+                    _module, _error = _compile(path, openmp), None
+                    break
+                except Exception as exc:  # compiler missing, headers missing, link error, ...
+                    _error = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc}"
     return _module
 
 
