@@ -55,10 +55,11 @@ def main() -> None:
     a = _args()
     src = Path(a.src).resolve() if a.src else Path(__file__).resolve().parents[1] / "src"
     sys.path.insert(0, str(src))
+    import t2bs  # first: it chooses how torch's OpenMP threads wait before torch loads (t2bs/openmp.py), as in a run
+
     import torch
     from torch.profiler import ProfilerActivity, profile
 
-    import t2bs
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.tracks import VertexTracks

@@ -41,3 +41,17 @@ def test_a_worker_keeps_its_pools_choice_and_the_pool_restores(env):
         assert openmp.choose_wait_policy() == "passive"  # the worker's own import: kept, not re-decided
     assert os.environ["GOMP_SPINCOUNT"] == openmp.SPIN_COUNT and "OMP_WAIT_POLICY" not in os.environ
     assert os.environ[openmp.CHOSEN] == "spin"
+
+
+def test_cores_busy_reads_other_processes_cpu_time(monkeypatch):
+    monkeypatch.setattr(openmp.os, "cpu_count", lambda: 2)
+    for ticks, busy in (([(1000, 500), (1030, 529)], False), ([(1000, 500), (1030, 515)], True)):
+        samples = iter(ticks)  # 30 ticks on 2 cores; 1 (1/15 of a core) or 15 (one core) not idle
+        monkeypatch.setattr(openmp, "cpu_ticks", lambda: next(samples))
+        assert openmp.cores_busy(seconds=0) is busy
+
+    def missing():
+        raise FileNotFoundError("/proc/stat")
+
+    monkeypatch.setattr(openmp, "cpu_ticks", missing)
+    assert openmp.cores_busy(seconds=0) is False

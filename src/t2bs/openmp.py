@@ -11,27 +11,39 @@ same threads (render/splat/parallel.h). Measured on 2 cores (facecap, quick pres
   the time slice the other process needs.
 
 So a process that has the cores to itself spins briefly, and processes that share them (the worker pools, or a start
-on a machine whose load average says its cores are busy) wait passively. A user's own ``OMP_WAIT_POLICY`` or
+on a machine where other processes are computing) wait passively. A user's own ``OMP_WAIT_POLICY`` or
 ``GOMP_SPINCOUNT`` wins. Only the speed depends on this: a seeded run gives the same numbers either way.
 """
 
 from __future__ import annotations
 
 import os
+import time
 from contextlib import contextmanager
 
 SPIN_COUNT = "3000"  # libgomp spins ~100 per us: ~30 us, long enough to span the gap between a step's operators
 CHOSEN = "T2BS_OPENMP_WAIT"  # set when this module chose the policy (so a worker pool may choose again for its workers)
 
 
-def cores_busy() -> bool:
-    """Whether other work already keeps this machine's cores busy: a 1-minute load average above all cores but half
-    of one (False where the platform has no load average)."""
+def cpu_ticks() -> tuple[int, int]:
+    """The machine's CPU time so far, from /proc/stat: (all ticks, idle + iowait ticks)."""
+    with open("/proc/stat") as f:
+        ticks = [int(x) for x in f.readline().split()[1:9]]
+    return sum(ticks), ticks[3] + ticks[4]
+
+
+def cores_busy(seconds: float = 0.15) -> bool:
+    """Whether other processes keep at least half a core busy right now: the machine's CPU time in /proc/stat over
+    ``seconds`` while this process sleeps (False where there is no /proc/stat). A sample, not the load average: a
+    process started right after another one finished would read that one's load for a minute after."""
     try:
-        load = os.getloadavg()[0]
-    except (AttributeError, OSError):
+        total0, idle0 = cpu_ticks()
+        time.sleep(seconds)
+        total1, idle1 = cpu_ticks()
+    except (OSError, ValueError, IndexError):
         return False
-    return load > (os.cpu_count() or 1) - 0.5
+    total = total1 - total0
+    return total > 0 and (total - (idle1 - idle0)) / total * (os.cpu_count() or 1) >= 0.5
 
 
 def choose_wait_policy(shared: bool | None = None) -> str | None:
