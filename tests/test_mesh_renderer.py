@@ -44,6 +44,21 @@ def test_cube_depth_normals_mask_and_colour(mesh_renderer):
     assert res.mask.mean() == pytest.approx(expected, rel=0.05)
 
 
+def test_render_rgb_is_renders_colour_from_every_camera(mesh_renderer):
+    """One upload drawn from several cameras gives each camera's ``render(...).rgb`` pixel for pixel, both shadings,
+    a posed mesh, and the renderer's state after it is as before (a full render still reads depth and face ids)."""
+    cube = _cube()
+    posed = cube.vertices @ np.array([[0.8, 0.0, 0.6], [0.0, 1.0, 0.0], [-0.6, 0.0, 0.8]], np.float32).T
+    cams = orbit_cameras(views=3, size=64)
+    for shading in ("lambert", "unlit"):
+        rgbs = mesh_renderer.render_rgb(cube, cams, posed, shading)
+        for cam, rgb in zip(cams, rgbs):
+            ref = mesh_renderer.render(cube, cam, vertices=posed, shading=shading).rgb
+            assert np.array_equal(rgb, ref) and (rgb != 1.0).any()  # the cube is in the picture
+    res = mesh_renderer.render(cube, frontal_camera(128, elevation_deg=0.0), shading="unlit")
+    assert res.face_id[0, 0] == -1 and res.face_id[64, 64] in (10, 11)
+
+
 def test_vertex_visibility_depth_test(mesh_renderer):
     cam = frontal_camera(128, elevation_deg=0.0)
     vis = mesh_renderer.vertex_visibility(_cube(), cam)

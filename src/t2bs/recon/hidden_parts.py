@@ -159,13 +159,11 @@ def render_losses(
 ) -> np.ndarray:
     """[len(views) * len(frames)] mean L1 difference between mesh renders of ``vertices`` [T, N, 3] and
     ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size), view-major."""
-    return np.array(
-        [
-            np.abs(renderer.render(mesh, cameras[v], vertices=vertices[t], shading=shading).rgb - images[v, t]).mean()
-            for v in views
-            for t in frames
-        ]
-    )
+    losses = np.empty((len(views), len(frames)))
+    for j, t in enumerate(frames):  # each pose uploaded once, drawn from every view
+        for i, rgb in enumerate(renderer.render_rgb(mesh, [cameras[v] for v in views], vertices[t], shading)):
+            losses[i, j] = np.abs(rgb - images[views[i], t]).mean()
+    return losses.ravel()
 
 
 def find_opening(

@@ -147,6 +147,70 @@ class MeshRenderer:
             self._texture_key = key
         self._texture.use(0)
 
+    def _vertex_array(self, mesh: Mesh, vertices, vertex_colors, texture):
+        """Upload ``mesh`` posed by ``vertices`` -> (vertex array, its buffers, whether it samples the texture)."""
+        verts = np.ascontiguousarray(mesh.vertices if vertices is None else vertices, dtype=np.float32)
+        if verts.shape != mesh.vertices.shape:
+            raise ValueError(f"vertices must have shape {mesh.vertices.shape}, got {verts.shape}")
+        tex = mesh.texture if texture is None else texture
+        use_texture = tex is not None and mesh.uv is not None and vertex_colors is None
+        colors = vertex_colors if vertex_colors is not None else (mesh.vertex_rgb() if not use_texture else None)
+        n = len(verts)
+        data = [verts, vertex_normals(verts, mesh.faces)]
+        data.append(
+            np.ascontiguousarray(colors, dtype=np.float32) if colors is not None else np.zeros((n, 3), np.float32)
+        )
+        data.append(np.ascontiguousarray(mesh.uv, dtype=np.float32) if use_texture else np.zeros((n, 2), np.float32))
+        buffers = [self.ctx.buffer(d.tobytes()) for d in data]
+        buffers.append(self.ctx.buffer(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes()))
+        vao = self.ctx.vertex_array(
+            self.program,
+            [
+                (buffers[0], "3f", "in_position"),
+                (buffers[1], "3f", "in_normal"),
+                (buffers[2], "3f", "in_color"),
+                (buffers[3], "2f", "in_uv"),
+            ],
+            index_buffer=buffers[4],
+            index_element_size=4,
+        )
+        if use_texture:
+            self._bind_texture(tex)
+        return vao, buffers, use_texture
+
+    def _draw(self, vao, camera: Camera, shading: str, ambient: float, use_texture: bool, clear_faces: bool):
+        """Draw the uploaded ``vao`` from ``camera`` into the framebuffer -> the colour attachment [H, W, 4] (RGBA,
+        rows top first)."""
+        import moderngl
+
+        if shading not in ("lambert", "unlit"):
+            raise ValueError(f"shading must be 'lambert' or 'unlit', got {shading!r}")
+        _, proj = camera.opengl_view_projection()
+        self.program["world_to_camera"].write(np.asarray(camera.world_to_camera, np.float32).T.tobytes())
+        self.program["cv_to_clip"].write(np.asarray(proj @ CV_TO_GL, np.float32).T.tobytes())
+        self.program["use_texture"].value = bool(use_texture)
+        self.program["lit"].value = shading == "lambert"
+        self.program["ambient"].value = float(ambient)
+        if use_texture:
+            self.program["tex"].value = 0
+        w, h = camera.width, camera.height
+        fbo = self._framebuffer(w, h)
+        fbo.use()
+        self.ctx.viewport = (0, 0, w, h)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        if clear_faces:
+            self._face.write(np.full((h, w), -1, np.int32).tobytes())
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        vao.render(moderngl.TRIANGLES)
+        return np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32).reshape(h, w, 4)[::-1]
+
+    @staticmethod
+    def _rgb(color: np.ndarray, background) -> np.ndarray:
+        mask = color[..., 3] > 0.5
+        rgb = np.where(mask[..., None], color[..., :3], np.asarray(background, np.float32)[None, None, :])
+        return np.clip(rgb, 0, 1).astype(np.float32)
+
     def render(
         self,
         mesh: Mesh,
@@ -163,63 +227,43 @@ class MeshRenderer:
         ``shading``: "lambert" (headlight + key light) or "unlit" (colour as is, ambient = 1).
         ``vertex_colors`` [N, 3] / ``texture`` [H, W, 3] override the mesh's own colours.
         """
-        import moderngl
-
         if shading not in ("lambert", "unlit"):
             raise ValueError(f"shading must be 'lambert' or 'unlit', got {shading!r}")
-        verts = np.ascontiguousarray(mesh.vertices if vertices is None else vertices, dtype=np.float32)
-        if verts.shape != mesh.vertices.shape:
-            raise ValueError(f"vertices must have shape {mesh.vertices.shape}, got {verts.shape}")
-        tex = mesh.texture if texture is None else texture
-        use_texture = tex is not None and mesh.uv is not None and vertex_colors is None
-        colors = vertex_colors if vertex_colors is not None else (mesh.vertex_rgb() if not use_texture else None)
-        n = len(verts)
-        data = [verts, vertex_normals(verts, mesh.faces)]
-        data.append(
-            np.ascontiguousarray(colors, dtype=np.float32) if colors is not None else np.zeros((n, 3), np.float32)
-        )
-        data.append(np.ascontiguousarray(mesh.uv, dtype=np.float32) if use_texture else np.zeros((n, 2), np.float32))
-        buffers = [self.ctx.buffer(d.tobytes()) for d in data]
-        ibo = self.ctx.buffer(np.ascontiguousarray(mesh.faces, dtype=np.int32).tobytes())
-        vao = self.ctx.vertex_array(
-            self.program,
-            [
-                (buffers[0], "3f", "in_position"),
-                (buffers[1], "3f", "in_normal"),
-                (buffers[2], "3f", "in_color"),
-                (buffers[3], "2f", "in_uv"),
-            ],
-            index_buffer=ibo,
-            index_element_size=4,
-        )
-        _, proj = camera.opengl_view_projection()
-        self.program["world_to_camera"].write(np.asarray(camera.world_to_camera, np.float32).T.tobytes())
-        self.program["cv_to_clip"].write(np.asarray(proj @ CV_TO_GL, np.float32).T.tobytes())
-        self.program["use_texture"].value = bool(use_texture)
-        self.program["lit"].value = shading == "lambert"
-        self.program["ambient"].value = float(ambient)
-        if use_texture:
-            self._bind_texture(tex)
-            self.program["tex"].value = 0
-        w, h = camera.width, camera.height
-        fbo = self._framebuffer(w, h)
-        fbo.use()
-        self.ctx.viewport = (0, 0, w, h)
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        self._face.write(np.full((h, w), -1, np.int32).tobytes())
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        self.ctx.disable(moderngl.CULL_FACE)
-        vao.render(moderngl.TRIANGLES)
-        color = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32).reshape(h, w, 4)[::-1]
-        nd = np.frombuffer(fbo.read(components=4, attachment=1, dtype="f4"), np.float32).reshape(h, w, 4)[::-1]
-        face = np.frombuffer(fbo.read(components=1, attachment=2, dtype="i4"), np.int32).reshape(h, w)[::-1]
-        for obj in (vao, ibo, *buffers):
-            obj.release()
+        vao, buffers, use_texture = self._vertex_array(mesh, vertices, vertex_colors, texture)
+        try:
+            color = self._draw(vao, camera, shading, ambient, use_texture, clear_faces=True)
+            h, w = color.shape[:2]
+            nd = np.frombuffer(self.fbo.read(components=4, attachment=1, dtype="f4"), np.float32).reshape(h, w, 4)[::-1]
+            face = np.frombuffer(self.fbo.read(components=1, attachment=2, dtype="i4"), np.int32).reshape(h, w)[::-1]
+        finally:
+            for obj in (vao, *buffers):
+                obj.release()
         mask = color[..., 3] > 0.5
-        rgb = np.where(mask[..., None], color[..., :3], np.asarray(background, np.float32)[None, None, :])
         depth = np.where(mask, nd[..., 3], np.inf).astype(np.float32)
         normal = np.where(mask[..., None], nd[..., :3], 0.0).astype(np.float32)
-        return RenderResult(np.clip(rgb, 0, 1).astype(np.float32), depth, normal, mask, np.ascontiguousarray(face))
+        return RenderResult(self._rgb(color, background), depth, normal, mask, np.ascontiguousarray(face))
+
+    def render_rgb(
+        self,
+        mesh: Mesh,
+        cameras: list[Camera],
+        vertices: np.ndarray | None = None,
+        shading: str = "lambert",
+        background=(1.0, 1.0, 1.0),
+        ambient: float = 0.35,
+    ) -> list[np.ndarray]:
+        """The ``rgb`` of ``render`` from each of ``cameras``, pixel for pixel, for one pose: the mesh is uploaded
+        once and only the colour is read back (the render-and-compare searches, recon/hidden_parts.py: ~2x faster
+        than a ``render`` per camera)."""
+        vao, buffers, use_texture = self._vertex_array(mesh, vertices, None, None)
+        try:
+            return [
+                self._rgb(self._draw(vao, c, shading, ambient, use_texture, clear_faces=False), background)
+                for c in cameras
+            ]
+        finally:
+            for obj in (vao, *buffers):
+                obj.release()
 
     def vertex_visibility(
         self,
