@@ -160,8 +160,9 @@ def render_losses(
     """[len(views) * len(frames)] mean L1 difference between mesh renders of ``vertices`` [T, N, 3] and
     ``images`` [V, T, H, W, 3] (float 0..1, at ``cameras``' size), view-major."""
     losses = np.empty((len(views), len(frames)))
+    view_cameras = [cameras[v] for v in views]
     for j, t in enumerate(frames):  # each pose uploaded once, drawn from every view
-        for i, rgb in enumerate(renderer.render_rgb(mesh, [cameras[v] for v in views], vertices[t], shading)):
+        for i, rgb in enumerate(renderer.render_rgb(mesh, view_cameras, vertices[t], shading)):
             losses[i, j] = np.abs(rgb - images[views[i], t]).mean()
     return losses.ravel()
 

@@ -227,8 +227,6 @@ class MeshRenderer:
         ``shading``: "lambert" (headlight + key light) or "unlit" (colour as is, ambient = 1).
         ``vertex_colors`` [N, 3] / ``texture`` [H, W, 3] override the mesh's own colours.
         """
-        if shading not in ("lambert", "unlit"):
-            raise ValueError(f"shading must be 'lambert' or 'unlit', got {shading!r}")
         vao, buffers, use_texture = self._vertex_array(mesh, vertices, vertex_colors, texture)
         try:
             color = self._draw(vao, camera, shading, ambient, use_texture, clear_faces=True)
