@@ -86,6 +86,18 @@ def frame_quat(u: torch.Tensor, w: torch.Tensor, n: torch.Tensor) -> torch.Tenso
 def face_gaussians(
     x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One Gaussian per triangle (``face_gaussians_reference`` says how), in C++ on the CPU (render/splat/faces.cpp:
+    one pass per triangle each way instead of ~45 tensor operators; equal to float rounding, the quaternion possibly
+    negated at a tie of Shepperd's formulas: the same rotation), the reference elsewhere (CUDA, a compiled step)."""
+    from t2bs.render.splat.cpu import face_gaussians_cpu
+
+    out = face_gaussians_cpu(x, faces, face_log_scale, flatness)
+    return face_gaussians_reference(x, faces, face_log_scale, flatness) if out is None else out
+
+
+def face_gaussians_reference(
+    x: torch.Tensor, faces: torch.Tensor, face_log_scale: torch.Tensor, flatness: float = 0.25
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One Gaussian per triangle, built from the (deformed) vertex positions each time.
 
     x [B, N, 3], faces [F, 3], face_log_scale [F] -> means [B, F, 3] (centroids), quats [B, F, 4]

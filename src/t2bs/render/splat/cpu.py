@@ -23,7 +23,7 @@ import torch
 from .reference import TILE, Projected, is_shared_set, project_gaussians, rasterize_reference_projected
 
 _HERE = Path(__file__).parent
-_SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp"]
+_SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp", _HERE / "faces.cpp"]
 _HEADERS = [_HERE / "parallel.h"]
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17", "-pthread"]
 # The kernels share torch's OpenMP threads (parallel.h says why); a compiler without OpenMP builds them on std::threads.
@@ -169,6 +169,45 @@ def project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, he
         means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near)
     )
     return Projected(means2d, conics, depths, opacities, colors, d2max, radii, valid)
+
+
+class _FaceGaussians(torch.autograd.Function):
+    """x [B, N, 3] -> the face Gaussians' (means [B, F, 3], quats [B, F, 4], scales [B, F, 3]), C++ both ways
+    (faces.cpp); the gradient reaches ``x`` only."""
+
+    @staticmethod
+    def forward(ctx, x, faces, log_scale, flatness):
+        args = (x.detach().contiguous(), faces.contiguous(), log_scale.detach().contiguous())
+        ctx.save_for_backward(*args)
+        ctx.flatness = flatness
+        return tuple(load_kernel().faces_forward(*args, flatness))
+
+    @staticmethod
+    def backward(ctx, g_mean, g_quat, g_scale):
+        x, faces, log_scale = ctx.saved_tensors
+        b, f = x.shape[0], faces.shape[0]
+        grads = [
+            torch.zeros((b, f, k), dtype=x.dtype) if g is None else g.contiguous().to(x.dtype)
+            for g, k in ((g_mean, 3), (g_quat, 4), (g_scale, 3))
+        ]
+        return load_kernel().faces_backward(x, faces, log_scale, ctx.flatness, *grads), None, None, None
+
+
+def face_gaussians_cpu(x, faces, face_log_scale, flatness: float):
+    """``recon.gaussians.face_gaussians_reference`` in C++ (same arguments and result, to float rounding), or None
+    where it does not apply: no kernel, tensors not float32 / float64 on the CPU, a ``face_log_scale`` that wants a
+    gradient (the C++ backward gives only ``x`` one), or inside a torch.compile trace (the compiler fuses the
+    reference itself)."""
+    if (
+        torch.compiler.is_compiling()
+        or x.device.type != "cpu"
+        or x.dtype not in (torch.float32, torch.float64)
+        or face_log_scale.dtype != x.dtype
+        or face_log_scale.requires_grad
+        or load_kernel() is None
+    ):
+        return None
+    return _FaceGaussians.apply(x, faces.to(device="cpu", dtype=torch.int64), face_log_scale, float(flatness))
 
 
 class _SplatComposite(torch.autograd.Function):

@@ -356,9 +356,17 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
                                             double near, torch::Tensor g_means2d, torch::Tensor g_conics,
                                             torch::Tensor g_depths);
 
+// faces.cpp
+std::vector<torch::Tensor> faces_forward(torch::Tensor x, torch::Tensor faces, torch::Tensor log_scale,
+                                         double flatness);
+torch::Tensor faces_backward(torch::Tensor x, torch::Tensor faces, torch::Tensor log_scale, double flatness,
+                             torch::Tensor g_mean, torch::Tensor g_quat, torch::Tensor g_scale);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians forward (CPU)");
   m.def("project_backward", &project_backward, "EWA projection of 3D Gaussians backward (CPU)");
   m.def("forward", &splat_forward, "Gaussian splat compositing forward (CPU)");
   m.def("backward", &splat_backward, "Gaussian splat compositing backward (CPU)");
+  m.def("faces_forward", &faces_forward, "face Gaussians from triangle corners, forward (CPU)");
+  m.def("faces_backward", &faces_backward, "face Gaussians from triangle corners, backward (CPU)");
 }
