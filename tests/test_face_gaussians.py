@@ -33,7 +33,9 @@ def _sheet(n: int = 12, batch: int = 3, seed: int = 0, dtype=torch.float32):
         -2,
     )
     x = torch.einsum("bij,nj->bni", rot, base) + 0.01 * torch.randn(batch, n * n, 3, generator=g, dtype=torch.float64)
-    quads = [(r * n + s, r * n + s + 1, (r + 1) * n + s, (r + 1) * n + s + 1) for r in range(n - 1) for s in range(n - 1)]
+    quads = [
+        (r * n + s, r * n + s + 1, (r + 1) * n + s, (r + 1) * n + s + 1) for r in range(n - 1) for s in range(n - 1)
+    ]
     faces = torch.tensor([f for a0, a1, b0, b1 in quads for f in ((a0, b0, a1), (a1, b0, b1))], dtype=torch.int64)
     return x.to(dtype), faces
 
