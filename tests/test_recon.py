@@ -96,7 +96,8 @@ def test_lbs_shared_rigid_transform_is_exact():
 
 
 def test_lbs_sparse_blend_matches_the_gather_reference():
-    """The sparse-matmul blend (the model's path) equals the gather over neighbours, values and gradients."""
+    """The sparse-matmul blend's path (on the CPU the C++ skinning) equals the gather over neighbours, values and
+    gradients."""
     rng = np.random.default_rng(2)
     torch.manual_seed(2)  # roma draws the rest orientations from torch's global generator
     x = torch.tensor(rng.normal(size=(300, 3)), dtype=torch.float32)
@@ -112,8 +113,8 @@ def test_lbs_sparse_blend_matches_the_gather_reference():
         xt, qt = lbs(x, q_rest, p, rv, tr, nb, w, m)
         (xt.square().sum() + (qt * torch.linspace(-1, 1, 4)).sum()).backward()
         results.append((xt.detach(), qt.detach(), rv.grad, tr.grad))
-    for ref, fast in zip(*results):
-        assert torch.allclose(ref, fast, atol=1e-5)
+    for ref, fast in zip(*results):  # to float rounding of the largest value (gradients reach ~50)
+        assert float((ref - fast).abs().max()) <= 1e-5 * max(1.0, float(ref.abs().max()))
     assert results[0][0].sub(x).abs().max() > 0.05  # the transforms really move the points
 
 

@@ -64,6 +64,16 @@ def blend_matrix(neighbours: torch.Tensor, weights: torch.Tensor, num_points: in
     return torch.sparse_coo_tensor(idx, weights.reshape(-1), (n, num_points), check_invariants=True).coalesce()
 
 
+def packed_transforms(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Per control point, what the blend averages: rotvec / trans [B, K, 3] about p [K, 3] -> [B, K, 16] = the
+    rotation matrix (9, row-major), the offset (3; T_k x = R_k x + offset) and the unit quaternion (4, XYZW, w >= 0)."""
+    rot = roma.rotvec_to_rotmat(rotvec)  # [B, K, 3, 3]
+    off = p + trans - matvec(rot, p)  # [B, K, 3]
+    q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
+    q = torch.where(q[..., 3:4] < 0, -q, q)  # one hemisphere, so that the average is meaningful
+    return torch.cat([rot.flatten(-2), off, q], -1)
+
+
 def _blend(
     rotvec: torch.Tensor,
     trans: torch.Tensor,
@@ -77,11 +87,7 @@ def _blend(
 
     -> (M [B, N, 3, 3] blended rotation matrices, b [B, N, 3] blended offsets, q [B, N, 4] XYZW
     blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k)."""
-    rot = roma.rotvec_to_rotmat(rotvec)  # [B, K, 3, 3]
-    off = p + trans - matvec(rot, p)  # [B, K, 3]
-    q = roma.rotvec_to_unitquat(rotvec)  # [B, K, 4] XYZW
-    q = torch.where(q[..., 3:4] < 0, -q, q)  # one hemisphere, so that the average is meaningful
-    packed = torch.cat([rot.flatten(-2), off, q], -1)  # [B, K, 16]
+    packed = packed_transforms(rotvec, trans, p)
     if matrix is None:
         blended = (weights[None, :, :, None] * packed[:, neighbours]).sum(2)  # [B, N, 16]
     else:
@@ -107,7 +113,30 @@ def lbs(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """x [N, 3] (or [B, N, 3], a rest pose per batch item), q_rest [N, 4] XYZW, p [K, 3], rotvec/trans [B, K, 3]
     (about p_k), neighbours/weights [N, knn], optional ``matrix`` = blend_matrix(neighbours, weights, K) (faster,
-    same result) -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW)."""
+    same result) -> (positions [B, N, 3] = sum_k w_k T_k x, rotations [B, N, 4] XYZW).
+
+    On the CPU (with ``matrix``: not inside a torch.compile trace) the blend and its application run in C++
+    (render/splat/skinning.cpp: one pass per vertex each way, equal to ``lbs_reference`` to float rounding)."""
+    if matrix is not None:
+        from t2bs.render.splat.cpu import skin_cpu
+
+        out = skin_cpu(packed_transforms(rotvec, trans, p), x, q_rest, neighbours, weights)
+        if out is not None:
+            return out
+    return lbs_reference(x, q_rest, p, rotvec, trans, neighbours, weights, matrix)
+
+
+def lbs_reference(
+    x: torch.Tensor,
+    q_rest: torch.Tensor,
+    p: torch.Tensor,
+    rotvec: torch.Tensor,
+    trans: torch.Tensor,
+    neighbours: torch.Tensor,
+    weights: torch.Tensor,
+    matrix: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``lbs`` in torch operators (the CUDA path, a compiled step, and the C++ op's reference)."""
     m, b, q = _blend(rotvec, trans, p, neighbours, weights, matrix)
     xt = matvec(m, x) + b
     return xt, matvec(quat_right_matrix(q_rest), q)

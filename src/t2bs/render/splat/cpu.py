@@ -23,7 +23,7 @@ import torch
 from .reference import TILE, Projected, is_shared_set, project_gaussians, rasterize_reference_projected
 
 _HERE = Path(__file__).parent
-_SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp", _HERE / "faces.cpp"]
+_SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp", _HERE / "faces.cpp", _HERE / "skinning.cpp"]
 _HEADERS = [_HERE / "parallel.h"]
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17", "-pthread"]
 # The kernels share torch's OpenMP threads (parallel.h says why); a compiler without OpenMP builds them on std::threads.
@@ -208,6 +208,48 @@ def face_gaussians_cpu(x, faces, face_log_scale, flatness: float):
     ):
         return None
     return _FaceGaussians.apply(x, faces.to(device="cpu", dtype=torch.int64), face_log_scale, float(flatness))
+
+
+class _Skin(torch.autograd.Function):
+    """(packed [B, K, 16], x [1 | B, N, 3]) -> skinned (positions [B, N, 3], rotations [B, N, 4]), C++ both ways
+    (skinning.cpp); q_rest, neighbours and weights get no gradient."""
+
+    @staticmethod
+    def forward(ctx, packed, x, q_rest, neighbours, weights):
+        args = [t.detach().contiguous() for t in (packed, x, q_rest, neighbours, weights)]
+        ctx.save_for_backward(*args)
+        return tuple(load_kernel().skin_forward(*args))
+
+    @staticmethod
+    def backward(ctx, g_x, g_q):
+        packed, x, q_rest, neighbours, weights = ctx.saved_tensors
+        b, n = packed.shape[0], x.shape[1]
+        g_x = torch.zeros((b, n, 3), dtype=packed.dtype) if g_x is None else g_x.contiguous().to(packed.dtype)
+        g_q = torch.zeros((b, n, 4), dtype=packed.dtype) if g_q is None else g_q.contiguous().to(packed.dtype)
+        g_packed, g_rest = load_kernel().skin_backward(packed, x, q_rest, neighbours, weights, g_x, g_q)
+        if not ctx.needs_input_grad[1]:
+            g_rest = None
+        elif x.shape[0] != b:  # one rest pose shared by the batch: its gradient sums the items' (fixed order)
+            g_rest = g_rest.sum(0, keepdim=True)
+        return g_packed, g_rest, None, None, None
+
+
+def skin_cpu(packed, x, q_rest, neighbours, weights):
+    """``recon.lbs.lbs_reference`` from the packed transforms in C++: packed [B, K, 16] (``recon.lbs.packed_transforms``),
+    x [N, 3] or [B, N, 3] -> (positions [B, N, 3], rotations [B, N, 4] XYZW); None where it does not apply (no kernel,
+    not float32 / float64 on the CPU, a gradient wanted by q_rest or the weights, a torch.compile trace)."""
+    tensors = (packed, x, q_rest, weights)
+    if (
+        torch.compiler.is_compiling()
+        or any(t.device.type != "cpu" or t.dtype != packed.dtype for t in tensors)
+        or packed.dtype not in (torch.float32, torch.float64)
+        or q_rest.requires_grad
+        or weights.requires_grad
+        or load_kernel() is None
+    ):
+        return None
+    rest = x if x.dim() == 3 else x[None]
+    return _Skin.apply(packed, rest, q_rest, neighbours.to(torch.int64), weights)
 
 
 class _SplatComposite(torch.autograd.Function):

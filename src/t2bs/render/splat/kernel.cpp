@@ -362,6 +362,13 @@ std::vector<torch::Tensor> faces_forward(torch::Tensor x, torch::Tensor faces, t
 torch::Tensor faces_backward(torch::Tensor x, torch::Tensor faces, torch::Tensor log_scale, double flatness,
                              torch::Tensor g_mean, torch::Tensor g_quat, torch::Tensor g_scale);
 
+// skinning.cpp
+std::vector<torch::Tensor> skin_forward(torch::Tensor packed, torch::Tensor x, torch::Tensor q_rest,
+                                        torch::Tensor neighbours, torch::Tensor weights);
+std::vector<torch::Tensor> skin_backward(torch::Tensor packed, torch::Tensor x, torch::Tensor q_rest,
+                                         torch::Tensor neighbours, torch::Tensor weights, torch::Tensor g_xt,
+                                         torch::Tensor g_qt);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians forward (CPU)");
   m.def("project_backward", &project_backward, "EWA projection of 3D Gaussians backward (CPU)");
@@ -369,4 +376,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward", &splat_backward, "Gaussian splat compositing backward (CPU)");
   m.def("faces_forward", &faces_forward, "face Gaussians from triangle corners, forward (CPU)");
   m.def("faces_backward", &faces_backward, "face Gaussians from triangle corners, backward (CPU)");
+  m.def("skin_forward", &skin_forward, "linear blend skinning of positions and rotations, forward (CPU)");
+  m.def("skin_backward", &skin_backward, "linear blend skinning of positions and rotations, backward (CPU)");
 }
