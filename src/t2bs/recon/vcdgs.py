@@ -788,6 +788,13 @@ def reconstruct_grid(
         raise UserError(
             f"grid ground truth has {grid.gt_vertices.shape[1]} vertices but the character has {mesh.num_vertices}"
         )
+    if _device(cfg).type == "cpu":
+        # The C++ kernel's first build (a minute or more on 2 cores, once per torch installation) happens here, before
+        # the video's clock starts: inside it, a fresh install's first demo video lost 225 of its 800 steps to the
+        # 260 s budget (session 26).
+        from t2bs.render.splat.cpu import load_kernel
+
+        load_kernel()
     torch.manual_seed(cfg.runtime.seed)
     threads = torch.get_num_threads()
     if cfg.runtime.threads > 0:
