@@ -75,9 +75,7 @@ def packed_transforms(rotvec: torch.Tensor, trans: torch.Tensor, p: torch.Tensor
 
 
 def _blend(
-    rotvec: torch.Tensor,
-    trans: torch.Tensor,
-    p: torch.Tensor,
+    packed: torch.Tensor,
     neighbours: torch.Tensor,
     weights: torch.Tensor,
     matrix: torch.Tensor | None = None,
@@ -86,8 +84,8 @@ def _blend(
     else the reference gather over ``neighbours`` / ``weights``.
 
     -> (M [B, N, 3, 3] blended rotation matrices, b [B, N, 3] blended offsets, q [B, N, 4] XYZW
-    blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k)."""
-    packed = packed_transforms(rotvec, trans, p)
+    blended unit quaternions), where T_k x = R_k x + (p_k + t_k - R_k p_k); ``packed`` [B, K, 16] from
+    ``packed_transforms``."""
     if matrix is None:
         blended = (weights[None, :, :, None] * packed[:, neighbours]).sum(2)  # [B, N, 16]
     else:
@@ -117,13 +115,14 @@ def lbs(
 
     On the CPU (with ``matrix``: not inside a torch.compile trace) the blend and its application run in C++
     (render/splat/skinning.cpp: one pass per vertex each way, equal to ``lbs_reference`` to float rounding)."""
+    packed = packed_transforms(rotvec, trans, p)
     if matrix is not None:
         from t2bs.render.splat.cpu import skin_cpu
 
-        out = skin_cpu(packed_transforms(rotvec, trans, p), x, q_rest, neighbours, weights)
+        out = skin_cpu(packed, x, q_rest, neighbours, weights)
         if out is not None:
             return out
-    return lbs_reference(x, q_rest, p, rotvec, trans, neighbours, weights, matrix)
+    return _skin_packed(packed, x, q_rest, neighbours, weights, matrix)
 
 
 def lbs_reference(
@@ -137,7 +136,12 @@ def lbs_reference(
     matrix: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``lbs`` in torch operators (the CUDA path, a compiled step, and the C++ op's reference)."""
-    m, b, q = _blend(rotvec, trans, p, neighbours, weights, matrix)
+    return _skin_packed(packed_transforms(rotvec, trans, p), x, q_rest, neighbours, weights, matrix)
+
+
+def _skin_packed(packed, x, q_rest, neighbours, weights, matrix) -> tuple[torch.Tensor, torch.Tensor]:
+    """The torch blend of ``packed`` [B, K, 16] applied to x and q_rest (``lbs_reference``'s body)."""
+    m, b, q = _blend(packed, neighbours, weights, matrix)
     xt = matvec(m, x) + b
     return xt, matvec(quat_right_matrix(q_rest), q)
 
@@ -152,7 +156,7 @@ def lbs_positions(
 ) -> torch.Tensor:
     """x [N, 3] rest positions, p [K, 3] control points, rotvec/trans [B, K, 3],
     neighbours/weights [N, knn] -> [B, N, 3] skinned positions."""
-    m, b, _ = _blend(rotvec, trans, p, neighbours, weights)
+    m, b, _ = _blend(packed_transforms(rotvec, trans, p), neighbours, weights)
     return matvec(m, x) + b
 
 

@@ -106,9 +106,9 @@ def kernel_error() -> str | None:
     return _error
 
 
-def _grad_in(g, shape):
-    """An output's incoming gradient as the kernels take it: contiguous float32 on the CPU, zeros if None."""
-    return torch.zeros(shape) if g is None else g.detach().cpu().float().contiguous()
+def _grad_in(g, shape, dtype=torch.float32):
+    """An output's incoming gradient as the kernels take it: contiguous ``dtype`` on the CPU, zeros if None."""
+    return torch.zeros(shape, dtype=dtype) if g is None else g.detach().cpu().to(dtype).contiguous()
 
 
 class _Project(torch.autograd.Function):
@@ -186,10 +186,7 @@ class _FaceGaussians(torch.autograd.Function):
     def backward(ctx, g_mean, g_quat, g_scale):
         x, faces, log_scale = ctx.saved_tensors
         b, f = x.shape[0], faces.shape[0]
-        grads = [
-            torch.zeros((b, f, k), dtype=x.dtype) if g is None else g.contiguous().to(x.dtype)
-            for g, k in ((g_mean, 3), (g_quat, 4), (g_scale, 3))
-        ]
+        grads = [_grad_in(g, (b, f, k), x.dtype) for g, k in ((g_mean, 3), (g_quat, 4), (g_scale, 3))]
         return load_kernel().faces_backward(x, faces, log_scale, ctx.flatness, *grads), None, None, None
 
 
@@ -224,8 +221,7 @@ class _Skin(torch.autograd.Function):
     def backward(ctx, g_x, g_q):
         packed, x, q_rest, neighbours, weights = ctx.saved_tensors
         b, n = packed.shape[0], x.shape[1]
-        g_x = torch.zeros((b, n, 3), dtype=packed.dtype) if g_x is None else g_x.contiguous().to(packed.dtype)
-        g_q = torch.zeros((b, n, 4), dtype=packed.dtype) if g_q is None else g_q.contiguous().to(packed.dtype)
+        g_x, g_q = _grad_in(g_x, (b, n, 3), packed.dtype), _grad_in(g_q, (b, n, 4), packed.dtype)
         g_packed, g_rest = load_kernel().skin_backward(packed, x, q_rest, neighbours, weights, g_x, g_q)
         if not ctx.needs_input_grad[1]:
             g_rest = None
