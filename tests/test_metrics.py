@@ -198,6 +198,7 @@ def test_benchmark_resumes_only_missing_rows(tmp_path, monkeypatch, capsys):
 
     first = run(["full", "static"])
     assert calls == [("a", "smiling", ("full", "static")), ("b", "smiling", ("full", "static"))]
+    assert {r["commit"] for r in first["rows"]} == {bench_vcdgs.code_commit()}  # each row says which code made it
     assert run(["full", "static"])["rows"] == first["rows"] and len(calls) == 2  # nothing recomputed
     both = run(["full", "no_lbs", "static"])  # only the new method runs, rows keep the requested order
     assert calls[2:] == [("a", "smiling", ("no_lbs",)), ("b", "smiling", ("no_lbs",))]
@@ -385,3 +386,24 @@ def test_expression_metrics_of_a_region_count_its_vertices_only():
     split = (half["expr_p2p"] * half["expr_fraction"] + full["expr_p2p"] * full["expr_fraction"]) * len(gt) * len(rest)
     assert split == pytest.approx(whole["expr_p2p"] * pairs, rel=1e-9)
     assert np.isnan(expression_metrics(pred, gt, rest, select=rest[:, 2] < 0)["expr_ratio"])  # the patch is not there
+
+
+def test_benchmark_rows_name_the_commit_of_their_code(tmp_path):
+    """``code_commit`` is this checkout's HEAD (``+dirty`` with uncommitted changes to tracked files), and None where
+    the code is not a git checkout of t2bs."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    from t2bs.eval import bench_vcdgs
+
+    here = Path(bench_vcdgs.__file__).resolve().parents[3]
+    if shutil.which("git") is None or not (here / ".git").exists():
+        pytest.skip("the code under test is not a git checkout")
+    head = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    got = bench_vcdgs.code_commit()
+    assert got is not None and got.split("+")[0] == head and len(head) == 40
+    dirty = subprocess.run(
+        ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
+    ).stdout.strip()
+    assert got.endswith("+dirty") == bool(dirty)

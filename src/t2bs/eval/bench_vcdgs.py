@@ -394,6 +394,29 @@ def _row_key(r: dict) -> tuple:
     return r["asset"], r["prompt"], r["defects"], r["method"]
 
 
+def code_commit() -> str | None:
+    """The git commit of the t2bs code this process runs, ``+dirty`` when tracked files differ from it; None when that
+    code is not a git checkout of t2bs (a wheel). Written into every new benchmark row: session 23's raw rows recorded
+    no commit, and a row that its code no longer gives could not be traced (docs/BENCHMARKS.md, session 27)."""
+    import subprocess
+
+    package = Path(__file__).resolve().parents[1]  # .../src/t2bs
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(package), *args], capture_output=True, text=True, timeout=20, check=True
+        ).stdout.strip()
+
+    try:
+        top = Path(git("rev-parse", "--show-toplevel"))
+        if (top / "src" / "t2bs").resolve() != package:  # t2bs installed inside some other repository
+            return None
+        sha, dirty = git("rev-parse", "HEAD"), git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return sha + ("+dirty" if dirty else "")
+
+
 def previous_rows(json_path: Path | None, settings: dict) -> dict[tuple, dict]:
     """Rows of an earlier run in ``json_path`` made with ``settings``, by (asset, prompt, defects, method)."""
     if json_path is None or not Path(json_path).exists():
@@ -449,7 +472,8 @@ def run_bench(
     perfect_tracks: bool = False,
 ) -> dict:
     """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
-    and (``resume``) rows already in that file with the same settings are kept instead of recomputed. ``workers``:
+    and (``resume``) rows already in that file with the same settings are kept instead of recomputed. Each new row
+    carries the commit of the code that made it (``code_commit``). ``workers``:
     cases run in parallel processes; the rows keep the (asset, defects, prompt, method) order whatever finishes first."""
     from t2bs.project import write_json
 
@@ -468,6 +492,7 @@ def run_bench(
         for m in [m for m in methods if m not in left]:
             print(_row_line(done[(name, p, d, m)]) + "  (kept)", flush=True)
     new: dict[tuple, dict] = {}
+    commit = code_commit()
     run = [i for i, left in enumerate(todo) if left]
     finished = _finished_cases(
         run_case,
@@ -494,7 +519,7 @@ def run_bench(
         ]
 
     for case_rows in finished:
-        new.update({_row_key(r): r for r in case_rows})
+        new.update({_row_key(r): {**r, "commit": commit} for r in case_rows})
         if json_path is not None:  # partial results survive an interruption and resume from here
             rows = ordered()
             write_json(json_path, {"rows": rows, "summary": summarise(rows), "settings": settings, "partial": True})
