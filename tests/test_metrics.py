@@ -388,7 +388,7 @@ def test_expression_metrics_of_a_region_count_its_vertices_only():
     assert np.isnan(expression_metrics(pred, gt, rest, select=rest[:, 2] < 0)["expr_ratio"])  # the patch is not there
 
 
-def test_benchmark_rows_name_the_commit_of_their_code(tmp_path):
+def test_benchmark_rows_name_the_commit_of_their_code():
     """``code_commit`` is this checkout's HEAD (``+dirty`` with uncommitted changes to tracked files), and None where
     the code is not a git checkout of t2bs."""
     import shutil
