@@ -570,6 +570,10 @@ def train(
             and (rest_seen is None or step % cfg.tracks.track_refresh == 0)
         ):
             rest_seen = _rest_as_seen(model, data.views)
+        if cfg.runtime.compile:
+            # A step's compiled graphs replayed as CUDA graphs (TORCHINDUCTOR_CUDAGRAPHS=1) reuse their output
+            # buffers: say where a step begins instead of leaving inductor to guess it; a no-op otherwise.
+            torch.compiler.cudagraph_mark_step_begin()
         terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, rest_seen=rest_seen)
         img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
         loss = sum(terms.values())
