@@ -91,8 +91,12 @@ def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
             parse_options(bad)
     with pytest.raises(UserError, match="knn"):  # parsed, then rejected by the config's own check
         preset("quick", **parse_options(["knn=0"]))
-    with pytest.raises(UserError, match="no VCDGS option 'cuda_graphs'"):  # removed: it trained nothing (issue 36)
+    # CUDA graphs replay the compiled step (back since a lent H200 trained with them: issue 36), so they need it;
+    # the paper preset (the GPU's) turns both on
+    with pytest.raises(UserError, match="cuda_graphs replays the compiled step: set compile=true with it"):
         preset("quick", **parse_options(["cuda_graphs=true"]))
+    assert preset("quick", **parse_options(["cuda_graphs=true", "compile=true"])).runtime.cuda_graphs
+    assert preset("paper").runtime.compile and preset("paper").runtime.cuda_graphs
     r = subprocess.run(
         [sys.executable, "-m", "t2bs.cli", "reconstruct", "nowhere", "--set", "knn=four"],
         capture_output=True,

@@ -484,7 +484,8 @@ class _NetworkCheck:
 
             raise UserError(
                 f"VCDGS trained nothing: {joint_steps} joint steps left the deformation network unchanged "
-                f"(device {cfg.runtime.device}, compile={str(cfg.runtime.compile).lower()}); this is a bug, please "
+                f"(device {cfg.runtime.device}, compile={str(cfg.runtime.compile).lower()}, "
+                f"cuda_graphs={str(cfg.runtime.cuda_graphs).lower()}); this is a bug, please "
                 "report it with this line"
             )
 
@@ -539,9 +540,12 @@ def train(
     joint = bool(history.get("joint_from") is not None and start >= history["joint_from"])
     history["steps_run"] = start
     terms_fn = step_terms
+    graphs = cfg.runtime.compile and cfg.runtime.cuda_graphs and dev.type == "cuda"
+    history["step_kind"] = "compiled, CUDA graphs" if graphs else "compiled" if cfg.runtime.compile else "eager"
     if cfg.runtime.compile:
         # Static shapes: a batch is always batch_size pairs; the warm-up and the joint stage are one graph each.
-        terms_fn = torch.compile(step_terms, dynamic=False)
+        # Inductor's reduce-overhead mode is its CUDA-graph replay (the one option it sets); none on the CPU.
+        terms_fn = torch.compile(step_terms, dynamic=False, mode="reduce-overhead" if graphs else None)
     networks = _NetworkCheck(model, joint)
     rest_seen = None  # [V, N, 3] the rest pose as each view sees it, for the track term (refreshed)
     for step in bar:
@@ -571,8 +575,8 @@ def train(
         ):
             rest_seen = _rest_as_seen(model, data.views)
         if cfg.runtime.compile:
-            # A step's compiled graphs replayed as CUDA graphs (TORCHINDUCTOR_CUDAGRAPHS=1) reuse their output
-            # buffers: say where a step begins instead of leaving inductor to guess it; a no-op otherwise.
+            # A step's compiled graphs replayed as CUDA graphs (cuda_graphs) reuse their output buffers: say where a
+            # step begins instead of leaving inductor to guess it; a no-op otherwise.
             torch.compiler.cudagraph_mark_step_begin()
         terms = terms_fn(model, data, cfg, v_idx, t_idx, vm, ks, perceptual, joint, rest_seen=rest_seen)
         img = sum(v for n, v in terms.items() if n in IMAGE_TERMS).detach()
