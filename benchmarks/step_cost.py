@@ -80,7 +80,12 @@ def main() -> None:
     }
     grids = {}
     for pname in a.presets.split(","):
-        cfg = preset(pname, **over)
+        pover = dict(over)
+        if "compile" not in pover and getattr(getattr(preset(pname), "runtime", None), "compile", False):
+            # the paper preset compiles its step (and replays it as CUDA graphs): the rows compare the eager step
+            # with --set compile=true, as before it did
+            pover.update(compile=False, cuda_graphs=False)
+        cfg = preset(pname, **pover)
         # the grid at the training resolution, --set resolution=... included (--src: a checkout before the tree)
         size = cfg.data.resolution if hasattr(cfg, "data") else cfg.resolution
         if size not in grids:
@@ -104,7 +109,7 @@ def main() -> None:
             def run(steps: int):
                 # A fresh copy per run: every run starts from the same untrained model.
                 m = copy.deepcopy(model)
-                c = preset(pname, **{**over, "iterations": steps, "global_iters": global_iters})
+                c = preset(pname, **{**pover, "iterations": steps, "global_iters": global_iters})
                 if cuda:
                     torch.cuda.synchronize()
                 t0 = time.perf_counter()
