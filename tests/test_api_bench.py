@@ -61,6 +61,13 @@ def test_bench_vcdgs_bad_config():
         bench_vcdgs(BenchVcdgsConfig(asset=("turtle",), set_options=("holdout_views=1",)))
     with pytest.raises(UserError, match="unknown method 'bogus'"):
         bench_vcdgs(BenchVcdgsConfig(asset=("turtle",), methods="full,bogus"))
+    fox = "procedural:a cartoon fox"
+    with pytest.raises(UserError, match="--landmarks 'fox.json': use ASSET=FILE"):
+        bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=("fox.json",)))
+    with pytest.raises(UserError, match=r"--landmarks turtle=\.\.\.: no such --asset"):
+        bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=("turtle=t.json",)))
+    with pytest.raises(UserError, match="--landmarks: nowhere.json is not a file"):
+        bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=(f"{fox}=nowhere.json",)))
 
 
 def test_bench_raster_bad_case():

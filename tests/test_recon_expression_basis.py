@@ -140,6 +140,27 @@ def test_the_auto_rig_gives_a_procedural_head_its_shapes():
     assert 0 < lid.sum() < 0.2 * mesh.num_vertices and jaw.sum() > lid.sum()  # local shapes, the jaw the larger
 
 
+def test_the_face_found_once_gives_the_same_basis_from_its_file(tmp_path):
+    """A head's landmarks as found on a render, written as the ``--landmarks`` JSON: the same basis without finding the
+    face again (how a benchmark runs where MediaPipe is absent: ``t2bs bench vcdgs --landmarks ASSET=FILE``; equal to
+    the last digit on facecap and the turtle too)."""
+    import json
+    from dataclasses import replace
+
+    from t2bs.character.backends import generate
+    from t2bs.recon.expression_basis import expression_basis
+    from t2bs.rig.stage import rig_canonical
+
+    mesh = generate("a cartoon fox with big ears", "procedural").mesh
+    names = ("eyeBlinkLeft", "jawOpen", "mouthSmileLeft")
+    found, info = expression_basis(mesh, names)
+    rig, _ = rig_canonical(replace(mesh, morph_targets={}))
+    (tmp_path / "fox.json").write_text(json.dumps(rig.landmarks.to_dict()))
+    again, info_again = expression_basis(mesh, names, tmp_path / "fox.json")
+    assert info_again["landmarks"] == "file" and info_again["shapes"] == info["shapes"] == list(names)
+    np.testing.assert_array_equal(again, found)
+
+
 @pytest.mark.slow
 def test_the_photometric_loss_alone_finds_a_shapes_weight_over_time():
     """The lid scene with the lid's true peak displacement as the one basis shape, no tracks: the weights learned from

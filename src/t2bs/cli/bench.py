@@ -92,6 +92,12 @@ def bench_vcdgs_command(
         help="Train on the truth's projected vertex motion instead of the optical flow's tracks (same validity): "
         "what perfect flow would buy.",
     ),
+    landmarks: list[str] = typer.Option(
+        None,
+        "--landmarks",
+        help="ASSET=FILE (repeat): that asset's 20 face points for the expression basis (the JSON of `t2bs autorig "
+        "--landmarks`, or a project's landmarks/landmarks.json) instead of finding the face on a render.",
+    ),
 ) -> None:
     """VCDGS vs ablations vs static on characters with ground truth (JSON + Markdown)."""
     result = bench_vcdgs(
@@ -114,6 +120,7 @@ def bench_vcdgs_command(
             workers=workers,
             progress=progress,
             perfect_tracks=perfect_tracks,
+            landmarks=tuple(landmarks or ()),
         )
     )
     print(markdown(result["rows"]))

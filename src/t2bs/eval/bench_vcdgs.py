@@ -130,6 +130,7 @@ def run_case(
     progress: bool = False,
     options: dict | None = None,
     perfect_tracks: bool = False,
+    landmarks: dict | None = None,
 ) -> list[dict]:
     import torch
 
@@ -169,7 +170,12 @@ def run_case(
                 if cuda:
                     torch.cuda.reset_peak_memory_stats()
                 res = reconstruct_grid(
-                    mesh, grid, cfg, progress=progress, tracks_fn=perfect_tracks_fn(gt) if perfect_tracks else None
+                    mesh,
+                    grid,
+                    cfg,
+                    progress=progress,
+                    landmarks_file=(landmarks or {}).get(name),
+                    tracks_fn=perfect_tracks_fn(gt) if perfect_tracks else None,
                 )
                 verts, seconds, pick = res.vertices, time.time() - t0, res.hidden_pick
                 # the expression basis's shapes (recon/expression_basis.py; [] when off or no face was found)
@@ -373,6 +379,7 @@ def bench_settings(
     iterations: int,
     options: dict | None,
     perfect_tracks: bool = False,
+    landmarks: dict | None = None,
 ) -> dict:
     """What a benchmark row depends on besides its (asset, prompt, defects, method): rows are reused on resume only
     when these match, and the resolved configuration is part of them, so a changed default invalidates old rows."""
@@ -388,6 +395,7 @@ def bench_settings(
         "options": options or {},
         "config": config,
         **({"tracks": "true"} if perfect_tracks else {}),  # the truth's image motion instead of the flow's
+        **({"landmarks": {k: str(v) for k, v in landmarks.items()}} if landmarks else {}),  # given, not found
     }
 
 
@@ -471,6 +479,7 @@ def run_bench(
     resume: bool = True,
     workers: int = 1,
     perfect_tracks: bool = False,
+    landmarks: dict | None = None,
 ) -> dict:
     """Every (asset, defects, prompt) case with every method; with ``json_path``, results are written after each case
     and (``resume``) rows already in that file with the same settings are kept instead of recomputed. Each new row
@@ -484,7 +493,14 @@ def run_bench(
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
     loaded = [load_asset(a) for a in assets]
-    settings = bench_settings(preset_name, size, frames, holdout, iterations, options, perfect_tracks)
+    names = [name for name, _ in loaded]
+    unknown = [a for a in landmarks or {} if a not in names]
+    if unknown:
+        raise UserError(f"--landmarks {unknown[0]}=...: no such --asset ({', '.join(names)})")
+    missing = [str(f) for f in (landmarks or {}).values() if not Path(f).is_file()]
+    if missing:
+        raise UserError(f"--landmarks: {missing[0]} is not a file")
+    settings = bench_settings(preset_name, size, frames, holdout, iterations, options, perfect_tracks, landmarks)
     done = previous_rows(json_path, settings) if resume else {}
     print(f"{'asset':>10} | {'prompt':<32} | defect | method    | " + " | ".join(HEADER[4:]), flush=True)
     cases = [(name, mesh, p, d) for name, mesh in loaded for d in defects for p in prompts]
@@ -507,6 +523,7 @@ def run_bench(
         progress,
         options,
         perfect_tracks,
+        landmarks,
     )
 
     def ordered() -> list[dict]:
@@ -555,6 +572,9 @@ class BenchVcdgsConfig:
     # the truth's projected vertex motion in place of the optical flow's tracks (same validity): what perfect flow
     # would buy, a ceiling for work on the tracks; the JSON's settings say "tracks": "true"
     perfect_tracks: bool = False
+    # ASSET=FILE: an asset's 20 face points for its expression basis (`t2bs autorig --landmarks`, or a project's
+    # landmarks/landmarks.json), else the face is found on a render (MediaPipe: absent on the lent GPU machines)
+    landmarks: tuple[str, ...] = ()
 
 
 def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
@@ -599,4 +619,16 @@ def bench_vcdgs(config: BenchVcdgsConfig = BenchVcdgsConfig()) -> dict:
         workers=config.workers,
         progress=config.progress,
         perfect_tracks=config.perfect_tracks,
+        landmarks=_landmark_files(config.landmarks),
     )
+
+
+def _landmark_files(items: tuple[str, ...]) -> dict[str, Path]:
+    """("ASSET=FILE", ...) -> {asset: Path}; UserError for an item without "="."""
+    out = {}
+    for item in items:
+        asset, sep, file = item.partition("=")
+        if not sep or not asset or not file:
+            raise UserError(f"--landmarks {item!r}: use ASSET=FILE (e.g. facecap=facecap_landmarks.json)")
+        out[asset] = Path(file)
+    return out
