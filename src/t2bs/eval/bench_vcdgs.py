@@ -183,6 +183,7 @@ def run_case(
                     "steps": int(res.history.get("steps_run", 0)),
                     "joint_ms_per_step": res.history.get("joint_ms_per_step"),  # after the joint stage's first 50
                     "step_kind": res.history.get("step_kind"),  # eager | compiled | compiled, CUDA graphs
+                    "compile_s": res.history.get("compile_s"),  # the compiled graphs' first steps (seconds)
                     "expression_shapes": res.expression["shapes"],
                     "phases": res.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
                 }

@@ -78,7 +78,7 @@ class ModelConfig:
 @dataclass
 class OptimConfig:
     iterations: int = 800  # training steps, the global warm-up included
-    time_budget_s: float = 260.0  # wall-clock cap of one reconstruction, static fit included (0 = none, exact per seed)
+    time_budget_s: float = 260.0  # wall-clock cap of a reconstruction, static fit in, compiling out (0 = none, exact)
     global_iters: int = 200  # warm-up steps fitting only the global SE(3) per (view, time)
     batch_size: int = 4  # (view, time) pairs rendered per step
     canonical_fraction: float = 0.25  # share of sampled pairs at the canonical view (it defines the output geometry)

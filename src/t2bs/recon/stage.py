@@ -98,6 +98,7 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
         "steps_run": result.history.get("steps_run"),
         "joint_ms_per_step": result.history.get("joint_ms_per_step"),  # after the joint stage's first 50 steps
         "step_kind": result.history.get("step_kind"),  # eager | compiled | compiled, CUDA graphs
+        "compile_s": result.history.get("compile_s"),  # the compiled graphs' first steps (not in the time budget)
         "stopped_at_budget": result.history.get("stopped_at_budget") is not None,
         "control_points": cfg.control_points.num_control_points,
         "resolution": cfg.data.resolution,
