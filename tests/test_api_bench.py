@@ -54,7 +54,7 @@ def test_bench_vcdgs_function(tmp_path, monkeypatch, capsys):
     assert capsys.readouterr().out.count("(kept)") == 8
 
 
-def test_bench_vcdgs_bad_config():
+def test_bench_vcdgs_bad_config(tmp_path):
     from t2bs.eval.bench_vcdgs import BenchVcdgsConfig, bench_vcdgs
 
     with pytest.raises(UserError, match="--set method / holdout_views"):
@@ -66,8 +66,12 @@ def test_bench_vcdgs_bad_config():
         bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=("fox.json",)))
     with pytest.raises(UserError, match=r"--landmarks turtle=\.\.\.: no such --asset"):
         bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=("turtle=t.json",)))
-    with pytest.raises(UserError, match="--landmarks: nowhere.json is not a file"):
+    with pytest.raises(UserError, match="landmarks file nowhere.json does not exist"):
         bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=(f"{fox}=nowhere.json",)))
+    bad = tmp_path / "ten.json"
+    bad.write_text('{"vertex_ids": [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]}')
+    with pytest.raises(UserError, match="vertex_ids must be 20 integers"):  # its contents too, before any case runs
+        bench_vcdgs(BenchVcdgsConfig(asset=(fox,), landmarks=(f"{fox}={bad}",)))
 
 
 def test_bench_raster_bad_case():

@@ -494,13 +494,13 @@ def run_bench(
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
     loaded = [load_asset(a) for a in assets]
-    names = [name for name, _ in loaded]
-    unknown = [a for a in landmarks or {} if a not in names]
-    if unknown:
-        raise UserError(f"--landmarks {unknown[0]}=...: no such --asset ({', '.join(names)})")
-    missing = [str(f) for f in (landmarks or {}).values() if not Path(f).is_file()]
-    if missing:
-        raise UserError(f"--landmarks: {missing[0]} is not a file")
+    meshes = dict(loaded)
+    for asset, file in (landmarks or {}).items():
+        if asset not in meshes:
+            raise UserError(f"--landmarks {asset}=...: no such --asset ({', '.join(meshes)})")
+        from t2bs.rig.face import read_landmarks_file
+
+        read_landmarks_file(file, meshes[asset].num_vertices)  # the reconstruction's own check, before any case runs
     settings = bench_settings(preset_name, size, frames, holdout, iterations, options, perfect_tracks, landmarks)
     done = previous_rows(json_path, settings) if resume else {}
     print(f"{'asset':>10} | {'prompt':<32} | defect | method    | " + " | ".join(HEADER[4:]), flush=True)
