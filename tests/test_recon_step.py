@@ -12,7 +12,7 @@ from t2bs.recon.config import preset
 from t2bs.recon.gaussians import camera_tensors, frame_quat
 from t2bs.recon.lbs import matvec, quat_left_matrix, quat_right_matrix
 from t2bs.recon.losses import PerceptualLoss
-from t2bs.recon.tracks import VertexTracks
+from t2bs.recon.tracks import VertexTracks, project_points
 from t2bs.recon.vcdgs import _rest_as_seen, build_model, prepare_data, step_terms
 
 
@@ -183,3 +183,32 @@ def test_a_training_run_that_leaves_the_network_unchanged_is_an_error(monkeypatc
     monkeypatch.setattr(torch.optim.Adam, "step", lambda self, closure=None: None)
     with pytest.raises(UserError, match="VCDGS trained nothing: 4 joint steps"):
         train(model, data, cfg, progress=False)
+
+
+def test_the_track_term_means_the_same_at_every_training_resolution():
+    """The track term counts its errors in pixels of a 128 px image: training the same model at 32 or at 64 px gives the
+    same track term for the same motion, in fractions of the image (in the training images' own pixels it doubled)."""
+    model, data32, cfg, vm32, ks32, perc, rest32 = _scene()
+    mesh, grid = lid_scene(frames=4, size=64, views=3)
+    data64 = prepare_data(grid, cfg.replace(resolution=64))
+    v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
+    terms = {}
+    for data in (data32, data64):
+        side = max(data.size)
+        vm, ks = camera_tensors(data.cameras)
+        rest = _rest_as_seen(model, data.views)
+        every_v = torch.arange(data.views).repeat_interleave(data.frames)
+        with torch.no_grad():
+            x = model(every_v, torch.arange(data.frames).repeat(data.views))["means"]
+            moved = project_points(x, vm[every_v], ks[every_v]) - project_points(
+                rest[every_v], vm[every_v], ks[every_v]
+            )
+            # the model's own motion off by 0.03 of the image side: the same error at both resolutions
+            disp = (moved + 0.03 * side).reshape(data.views, data.frames, -1, 2)
+            data.tracks = VertexTracks(
+                disp, torch.ones(disp.shape[:3]), torch.ones(data.views, disp.shape[2], dtype=bool)
+            )
+            terms[side] = float(
+                step_terms(model, data, cfg, v_idx, t_idx, vm, ks, perc, False, rest_seen=rest)["track"]
+            )
+    assert terms[32] > 0 and terms[64] == pytest.approx(terms[32], rel=1e-3)

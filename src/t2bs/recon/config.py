@@ -116,7 +116,9 @@ class LossConfig:
 
 @dataclass
 class TrackConfig:
-    track_weight: float = 0.05  # weight of the optical-flow vertex-track term (0 = the paper's loss alone)
+    # weight of the optical-flow vertex-track term, whose errors count in pixels of a 128 px image at every training
+    # resolution (0 = the paper's loss alone)
+    track_weight: float = 0.05
     track_refresh: int = 20  # steps between refreshes of the per-view rest pose the term measures motion from
     track_delta: float = 0.008  # Huber transition of the term, fraction of the image's longer side (1 px at 128)
     track_fb: float = 0.008  # forward-backward flow round-trip tolerance of a valid track, same unit

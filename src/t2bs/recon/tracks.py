@@ -63,6 +63,12 @@ class VertexTracks:
         return float(self.weights.mean())
 
 
+# The track term's errors count in pixels of an image of this longer side, at every training resolution: in the training
+# images' own pixels the term grew with the resolution (twice the weight at 256 px, four times at the paper preset's 512,
+# which cost facecap's wide mouth 0.253 -> 0.333 of the rigid oracle at 256 px; docs/VCDGS_NOTES.md)
+TRACK_UNIT_SIDE = 128
+
+
 def project_points(x: torch.Tensor, viewmats: torch.Tensor, ks: torch.Tensor) -> torch.Tensor:
     """x [B, N, 3] world points, viewmats [B, 4, 4] world->camera (OpenCV), ks [B, 3, 3] -> pixels [B, N, 2]."""
     xc = x @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]

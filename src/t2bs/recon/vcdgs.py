@@ -68,7 +68,7 @@ from t2bs.recon.gaussians import (
     render,
 )
 from t2bs.recon.losses import IMAGE_TERMS, PerceptualLoss, image_loss
-from t2bs.recon.tracks import VertexTracks, compute_tracks, project_points, track_loss
+from t2bs.recon.tracks import TRACK_UNIT_SIDE, VertexTracks, compute_tracks, project_points, track_loss
 
 
 @dataclass
@@ -442,20 +442,25 @@ def step_terms(
     if data.tracks is not None and cfg.tracks.track_weight > 0:
         # Untextured tracks join in the joint stage only: their flow is filled in from edges and
         # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
-        terms["track"] = cfg.tracks.track_weight * track_loss(
-            out["means"],
-            rest_seen[v_idx],
-            vm[v_idx],
-            ks[v_idx],
-            data.tracks,
-            v_idx,
-            t_idx,
-            cfg.tracks.track_delta * max(w, h),
-            flat_weight=cfg.tracks.track_flat_weight if joint else 0.0,
-            slack=cfg.tracks.track_slack if joint else 0.0,
-            head=_head_motion_px(model, out, rest_seen[v_idx], vm[v_idx], ks[v_idx], v_idx, t_idx)
-            if joint and cfg.tracks.track_slack > 0
-            else None,
+        unit = TRACK_UNIT_SIDE / max(w, h)  # the term in pixels of a 128 px image (its Huber is 1-homogeneous)
+        terms["track"] = (
+            cfg.tracks.track_weight
+            * unit
+            * track_loss(
+                out["means"],
+                rest_seen[v_idx],
+                vm[v_idx],
+                ks[v_idx],
+                data.tracks,
+                v_idx,
+                t_idx,
+                cfg.tracks.track_delta * max(w, h),
+                flat_weight=cfg.tracks.track_flat_weight if joint else 0.0,
+                slack=cfg.tracks.track_slack if joint else 0.0,
+                head=_head_motion_px(model, out, rest_seen[v_idx], vm[v_idx], ks[v_idx], v_idx, t_idx)
+                if joint and cfg.tracks.track_slack > 0
+                else None,
+            )
         )
     if joint:
         terms.update(_regularisers(model, out, v_idx, t_idx, cfg))
