@@ -31,7 +31,8 @@ A track counts only where the vertex is visible in the rest render of that view 
 The loss (vcdgs.train) compares the model's projected displacement x(v, t) - x(v, 0) with the
 tracked one, so a per-view shape disagreement at rest (a 4D generator's side view) is not
 mistaken for motion; going further than a track along its expression motion is free up to a slack
-(``track_loss``), because the flow falls short of small expressions.
+(``track_loss``), because the flow falls short of small expressions. vcdgs.step_terms scales the term to pixels of
+a 128 px image (``TRACK_UNIT_SIDE``), so that ``track_weight`` means the same at every training resolution.
 """
 
 from __future__ import annotations
