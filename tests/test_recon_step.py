@@ -188,8 +188,8 @@ def test_a_training_run_that_leaves_the_network_unchanged_is_an_error(monkeypatc
 def test_the_track_term_means_the_same_at_every_training_resolution():
     """The track term counts its errors in pixels of a 128 px image: training the same model at 32 or at 64 px gives the
     same track term for the same motion, in fractions of the image (in the training images' own pixels it doubled)."""
-    model, data32, cfg, vm32, ks32, perc, rest32 = _scene()
-    mesh, grid = lid_scene(frames=4, size=64, views=3)
+    model, data32, cfg, _, _, perc, _ = _scene()
+    _, grid = lid_scene(frames=4, size=64, views=3)
     data64 = prepare_data(grid, cfg.replace(resolution=64))
     v_idx, t_idx = torch.tensor([1, 0, 2, 1]), torch.tensor([0, 3, 1, 2])
     terms = {}

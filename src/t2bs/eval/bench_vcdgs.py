@@ -494,12 +494,12 @@ def run_bench(
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
     loaded = [load_asset(a) for a in assets]
+    from t2bs.rig.face import read_landmarks_file
+
     meshes = dict(loaded)
     for asset, file in (landmarks or {}).items():
         if asset not in meshes:
             raise UserError(f"--landmarks {asset}=...: no such --asset ({', '.join(meshes)})")
-        from t2bs.rig.face import read_landmarks_file
-
         read_landmarks_file(file, meshes[asset].num_vertices)  # the reconstruction's own check, before any case runs
     settings = bench_settings(preset_name, size, frames, holdout, iterations, options, perfect_tracks, landmarks)
     done = previous_rows(json_path, settings) if resume else {}

@@ -442,7 +442,8 @@ def step_terms(
     if data.tracks is not None and cfg.tracks.track_weight > 0:
         # Untextured tracks join in the joint stage only: their flow is filled in from edges and
         # silhouettes, right for a jaw that drops but biased for a rigid turn (see the notes above).
-        unit = TRACK_UNIT_SIDE / max(w, h)  # the term in pixels of a 128 px image (its Huber is 1-homogeneous)
+        side = max(w, h)
+        unit = TRACK_UNIT_SIDE / side  # the term in pixels of a 128 px image (its Huber is 1-homogeneous)
         terms["track"] = (
             cfg.tracks.track_weight
             * unit
@@ -454,7 +455,7 @@ def step_terms(
                 data.tracks,
                 v_idx,
                 t_idx,
-                cfg.tracks.track_delta * max(w, h),
+                cfg.tracks.track_delta * side,
                 flat_weight=cfg.tracks.track_flat_weight if joint else 0.0,
                 slack=cfg.tracks.track_slack if joint else 0.0,
                 head=_head_motion_px(model, out, rest_seen[v_idx], vm[v_idx], ks[v_idx], v_idx, t_idx)
