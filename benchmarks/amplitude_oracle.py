@@ -61,7 +61,7 @@ def main(
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.gaussians import camera_tensors, render
     from t2bs.recon.losses import PerceptualLoss, image_loss
-    from t2bs.recon.vcdgs import _sample, batch_targets, build_model, prepare_data
+    from t2bs.recon.vcdgs import _sample, batch_targets, build_model, prepare_data, static_splats
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -104,13 +104,10 @@ def main(
     w, h = data.size
     perceptual = PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights)
     gen = torch.Generator().manual_seed(seed)
-    q, s, c = model.quats[None], model.log_scales.exp()[None], model.colors[None]
     for _ in range(steps):
         v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, 0.0)
-        b = len(t_idx)
         x = pose(t_idx, amp[t_idx])
-        splats = model.splats_at(x, q.expand(b, -1, -1), s.expand(b, -1, -1), c.expand(b, -1, -1))
-        out = render(*splats, vm[v_idx], ks[v_idx], w, h)
+        out = render(*static_splats(model, len(t_idx), x)["splats"], vm[v_idx], ks[v_idx], w, h)
         target, mask = batch_targets(data, v_idx, t_idx)
         loss = sum(image_loss(out, target, mask, perceptual, cfg).values())
         opt.zero_grad()

@@ -38,6 +38,7 @@ def self_targets(model, data, gt_vertices) -> None:
     import torch
 
     from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.vcdgs import static_splats
 
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -45,13 +46,7 @@ def self_targets(model, data, gt_vertices) -> None:
     with torch.no_grad():
         for t in range(data.frames):
             x = torch.as_tensor(gt_vertices[t])[None].expand(v, -1, -1)
-            splats = model.splats_at(
-                x,
-                model.quats[None].expand(v, -1, -1),
-                model.log_scales.exp()[None].expand(v, -1, -1),
-                model.colors[None].expand(v, -1, -1),
-            )
-            out = render(*splats, vm, ks, w, h)
+            out = render(*static_splats(model, v, x)["splats"], vm, ks, w, h)
             data.images[:, t] = out["rgb"]
             if data.masks is not None:
                 data.masks[:, t] = out["alpha"][..., 0]
@@ -67,7 +62,7 @@ def image_loss_at(model, data, cfg, vertices) -> float:
 
     from t2bs.recon.gaussians import camera_tensors, render
     from t2bs.recon.losses import PerceptualLoss, image_loss_per_item
-    from t2bs.recon.vcdgs import batch_targets
+    from t2bs.recon.vcdgs import batch_targets, static_splats
 
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -76,16 +71,20 @@ def image_loss_at(model, data, cfg, vertices) -> float:
     total = 0.0
     with torch.no_grad():
         for t in range(1, data.frames - 1):
-            splats = model.splats_at(
-                vertices[t],
-                model.quats[None].expand(v, -1, -1),
-                model.log_scales.exp()[None].expand(v, -1, -1),
-                model.colors[None].expand(v, -1, -1),
-            )
+            out = render(*static_splats(model, v, vertices[t])["splats"], vm, ks, w, h)
             v_idx = torch.arange(v)
             target, mask = batch_targets(data, v_idx, torch.full_like(v_idx, t))
-            total += float(image_loss_per_item(render(*splats, vm, ks, w, h), target, mask, perceptual, cfg).sum())
+            total += float(image_loss_per_item(out, target, mask, perceptual, cfg).sum())
     return round(total, 5)
+
+
+def fitted_vertices(model, data):
+    """[T, V, N, 3] the trained model's vertices at every frame as each view sees them (no RefineMLP)."""
+    import torch
+
+    with torch.no_grad():
+        views = torch.arange(data.views)
+        return torch.stack([model(views, torch.full_like(views, t), refine=False)["means"] for t in range(data.frames)])
 
 
 def main(
@@ -119,21 +118,16 @@ def main(
         model, _ = build_model(mesh, data, cfg)
         if self_targets_on:
             self_targets(model, data, grid.gt_vertices)
-        rest = torch.as_tensor(mesh.vertices)
-        truth = torch.as_tensor(grid.gt_vertices)[:, None].expand(-1, data.views, -1, -1)  # [T, V, N, 3]
         extra = {}
         if scan:
+            rest = torch.as_tensor(mesh.vertices)
+            truth = torch.as_tensor(grid.gt_vertices)[:, None].expand(-1, data.views, -1, -1)  # [T, V, N, 3]
             extra["scan_truth"] = {
                 str(a): image_loss_at(model, data, cfg, rest + a * (truth - rest)) for a in SCAN_AMOUNTS
             }
         train(model, data, cfg, progress=False)
         if scan:
-            with torch.no_grad():
-                views = torch.arange(data.views)
-                fitted = torch.stack(
-                    [model(views, torch.full_like(views, t), refine=False)["means"] for t in range(data.frames)]
-                )
-            extra["loss_trained"] = image_loss_at(model, data, cfg, fitted)
+            extra["loss_trained"] = image_loss_at(model, data, cfg, fitted_vertices(model, data))
             extra["loss_truth"] = image_loss_at(model, data, cfg, truth)
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
     m = expression_metrics(verts, grid.gt_vertices, mesh.vertices)

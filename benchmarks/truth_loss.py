@@ -48,15 +48,15 @@ def main(
 ) -> None:
     """Reconstruct, then print the image loss of the fit, of the truth and of their mixes (one JSON object)."""
     import torch
-    import torch.nn.functional as F
 
-    from lid_scene import image_loss_at
+    from lid_scene import fitted_vertices, image_loss_at
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.geometry.metrics import expression_metrics
     from t2bs.geometry.rigid import apply_rigid_frames, remove_motion, robust_rigid_motion
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.gaussians import camera_tensors, render
-    from t2bs.recon.vcdgs import batch_targets, reconstruct_grid
+    from t2bs.recon.losses import silhouette_band
+    from t2bs.recon.vcdgs import batch_targets, reconstruct_grid, static_splats
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -70,9 +70,7 @@ def main(
     model, data = res.model, res.data
     views, cv = data.views, data.canonical_view
     metric = expression_metrics(res.vertices, grid.gt_vertices, mesh.vertices)
-    with torch.no_grad():
-        idx = torch.arange(views)
-        fitted = torch.stack([model(idx, torch.full_like(idx, t), refine=False)["means"] for t in range(data.frames)])
+    fitted = fitted_vertices(model, data)
     truth = grid.gt_vertices.astype(np.float64)
     rot, trans = robust_rigid_motion(mesh.vertices, truth)
     true_local = remove_motion(rot, trans, truth)  # [T, N, 3]
@@ -96,21 +94,17 @@ def main(
     peak = int(np.linalg.norm(true_local - mesh.vertices, axis=-1).mean(1).argmax())
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
-    band = max(cfg.loss.silhouette_band, 0)
 
     def draw(x: torch.Tensor) -> dict:
-        splats = model.splats_at(x[None], model.quats[None], model.log_scales.exp()[None], model.colors[None])
-        return render(*splats, vm[[cv]], ks[[cv]], w, h)
+        return render(*static_splats(model, 1, x[None])["splats"], vm[[cv]], ks[[cv]], w, h)
 
     with torch.no_grad():
         target, mask = batch_targets(data, torch.tensor([cv]), torch.tensor([peak]))
         if mask is None:
             mask = torch.ones(target.shape[:3])
-        dil = F.max_pool2d(mask[:, None], 2 * band + 1, stride=1, padding=band)[:, 0]
-        ring = (dil - mask).clamp(0, 1)[..., None]
 
         def errors(r: dict) -> tuple[torch.Tensor, torch.Tensor]:
-            rgb = r["rgb"] * (1 - ring) + target * ring
+            rgb, dil = silhouette_band(r["rgb"], target, mask, cfg.loss.silhouette_band)
             return (rgb - target).abs().sum(-1)[0], (r["alpha"][..., 0] - dil).abs()[0]
 
         r_truth, r_fit = draw(poses["truth"][peak, cv]), draw(fitted[peak, cv])

@@ -162,20 +162,25 @@ class PerceptualLoss(nn.Module):
 IMAGE_TERMS = ("huber", "mask", "dssim", "lpips")  # the names image_loss gives its terms (the "image" loss)
 
 
+def silhouette_band(
+    rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, band: int
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """rgb, target [B, H, W, 3], mask [B, H, W] float or None -> (rgb with the ring of ``band`` px outside the true
+    outline taken from the target, the mask dilated by ``band`` px); unchanged without a mask or with band 0.
+
+    Why: one splat per vertex/face overhangs the mesh outline by ~1 px in every view (Gaussian tails); compared
+    with the hard mesh outline this bias reads as "shrink the head". The outline is therefore matched against the
+    dilated mask, and the colour ignores that thin ring outside the true outline."""
+    if mask is None or band <= 0:
+        return rgb, mask
+    dil = F.max_pool2d(mask[:, None], 2 * band + 1, stride=1, padding=band)[:, 0]
+    ring = (dil - mask).clamp(0, 1)[..., None]  # [B, H, W, 1]
+    return rgb * (1 - ring) + target * ring, dil
+
+
 def image_loss(render: dict, target: torch.Tensor, mask: torch.Tensor | None, perceptual: PerceptualLoss, cfg) -> dict:
     """render: rasterizer output; target [B, H, W, 3]; mask [B, H, W] float or None -> loss terms."""
-    rgb = render["rgb"]
-    band = cfg.loss.silhouette_band
-    if mask is not None and band > 0:
-        # One splat per vertex/face overhangs the mesh outline by ~1 px in every view (Gaussian
-        # tails); compared with the hard mesh outline this bias reads as "shrink the head".
-        # The outline is therefore matched against the mask dilated by ``band`` px, and the RGB
-        # loss ignores that thin ring outside the true outline.
-        m = mask[:, None]
-        dil = F.max_pool2d(m, 2 * band + 1, stride=1, padding=band)[:, 0]
-        ring = (dil - mask).clamp(0, 1)[..., None]  # [B, H, W, 1]
-        rgb = rgb * (1 - ring) + target * ring
-        mask = dil
+    rgb, mask = silhouette_band(render["rgb"], target, mask, cfg.loss.silhouette_band)
     terms = {"huber": huber_pyramid(rgb, target, cfg.loss.huber_delta, cfg.loss.pyramid_levels)}
     if mask is not None and cfg.loss.mask_weight > 0:
         terms["mask"] = cfg.loss.mask_weight * huber_pyramid(

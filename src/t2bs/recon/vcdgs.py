@@ -748,10 +748,13 @@ def _rest_as_seen(model: VCDGSModel, views: int) -> torch.Tensor:
     return model(v_idx, torch.zeros_like(v_idx), refine=False)["means"]
 
 
-def static_splats(model: VCDGSModel, batch: int) -> dict:
-    """The rest-pose Gaussians (vertex + face), repeated ``batch`` times, as ``model.forward`` returns them."""
+def static_splats(model: VCDGSModel, batch: int, vertices: torch.Tensor | None = None) -> dict:
+    """The static Gaussians (vertex + face; rest shapes, orientations and colours), repeated ``batch`` times, as
+    ``model.forward`` returns them: at the rest pose, or centred on ``vertices`` [batch, N, 3] (diagnostics that
+    place the static splats at given positions: benchmarks/lid_scene.py, truth_loss.py, amplitude_oracle.py)."""
 
-    x, q = model.means[None].expand(batch, -1, -1), model.quats[None].expand(batch, -1, -1)
+    x = model.means[None].expand(batch, -1, -1) if vertices is None else vertices
+    q = model.quats[None].expand(batch, -1, -1)
     s, c = model.log_scales.exp()[None].expand(batch, -1, -1), model.colors[None].expand(batch, -1, -1)
     return {"splats": model.splats_at(x, q, s, c)}
 
