@@ -77,7 +77,7 @@ def main(
 
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.geometry.metrics import expression_metrics
-    from t2bs.geometry.rigid import remove_motion, robust_rigid_motion
+    from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.recon.config import preset
     from t2bs.recon.control_points import build_control_points
     from t2bs.recon.expression_basis import expression_basis
@@ -95,13 +95,12 @@ def main(
     )
     design = motion_design(mesh.vertices, cps.positions, cps.neighbours, cps.weights, rotations, shapes)
     rest = mesh.vertices.astype(np.float64)
-    truth = grid.gt_vertices.astype(np.float64)
-    local = remove_motion(*robust_rigid_motion(mesh.vertices, truth), truth)  # [T, N, 3] as seen from the head
+    motion, _, _ = nonrigid_displacements(rest, grid.gt_vertices)  # [T, N, 3] the truth as seen from the head
     # Least squares through the normal equations' pseudo-inverse, formed once: a control point whose vertices all lie
     # on a line leaves its rotation about that line free (a null direction, which the pseudo-inverse leaves at 0).
     solve = pinvh((design.T @ design).toarray())  # [P, P]
-    best = rest + np.stack([(design @ (solve @ (design.T @ (f - rest).ravel()))).reshape(-1, 3) for f in local])
-    m = expression_metrics(best, local, mesh.vertices)
+    best = rest + np.stack([(design @ (solve @ (design.T @ d.ravel()))).reshape(-1, 3) for d in motion])
+    m = expression_metrics(best, rest + motion, mesh.vertices)
     print(
         json.dumps(
             {

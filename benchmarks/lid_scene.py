@@ -69,10 +69,10 @@ def image_loss_at(model, data, cfg, vertices) -> float:
     v = data.views
     perceptual = PerceptualLoss(cfg.loss.perceptual, cfg.loss.lpips_weights)
     total = 0.0
+    v_idx = torch.arange(v)
     with torch.no_grad():
         for t in range(1, data.frames - 1):
             out = render(*static_splats(model, v, vertices[t])["splats"], vm, ks, w, h)
-            v_idx = torch.arange(v)
             target, mask = batch_targets(data, v_idx, torch.full_like(v_idx, t))
             total += float(image_loss_per_item(out, target, mask, perceptual, cfg).sum())
     return round(total, 5)

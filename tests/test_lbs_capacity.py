@@ -30,9 +30,10 @@ def test_motion_design_is_the_skinned_translations_rotations_and_shapes():
     expected = np.einsum("nq,nqc->nc", w, t[nb] + np.cross(omega[nb], x[:, None] - p[nb])) + np.einsum(
         "j,jnc->nc", c, shapes
     )
-    design = _module().motion_design(x, p, nb, w, True, shapes)
+    motion_design = _module().motion_design
+    design = motion_design(x, p, nb, w, True, shapes)
     params = np.concatenate([np.concatenate([t, omega], 1).ravel(), c])
     np.testing.assert_allclose((design @ params).reshape(n, 3), expected, atol=1e-12)
     # translations only, no shapes: the blend of the control points' translations
-    plain = _module().motion_design(x, p, nb, w, False, None)
+    plain = motion_design(x, p, nb, w, False, None)
     np.testing.assert_allclose((plain @ t.ravel()).reshape(n, 3), np.einsum("nq,nqc->nc", w, t[nb]), atol=1e-12)
