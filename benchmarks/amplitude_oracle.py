@@ -107,7 +107,9 @@ def main(
     for _ in range(steps):
         v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, 0.0)
         x = pose(t_idx, amp[t_idx])
-        out = render(*static_splats(model, len(t_idx), x)["splats"], vm[v_idx], ks[v_idx], w, h)
+        out = render(
+            *static_splats(model, len(t_idx), x)["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass
+        )
         target, mask = batch_targets(data, v_idx, t_idx)
         loss = sum(image_loss(out, target, mask, perceptual, cfg).values())
         opt.zero_grad()

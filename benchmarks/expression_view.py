@@ -83,7 +83,7 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     with MeshRenderer() as renderer, torch.no_grad():
         for t in frames:
             out = model(torch.tensor([c]), torch.tensor([t]), refine=False)
-            splat = render(*out["splats"], vm, ks, size, size)["rgb"][0].numpy()
+            splat = render(*out["splats"], vm, ks, size, size, lowpass=model.splat_lowpass)["rgb"][0].numpy()
             tiles = [inputs[t], splat, renderer.render(mesh, cam, vertices=verts[t], shading=shading).rgb]
             if gt is not None:
                 tiles.append(renderer.render(mesh, cam, vertices=gt[t], shading=shading).rgb)

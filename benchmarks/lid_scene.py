@@ -46,7 +46,7 @@ def self_targets(model, data, gt_vertices) -> None:
     with torch.no_grad():
         for t in range(data.frames):
             x = torch.as_tensor(gt_vertices[t])[None].expand(v, -1, -1)
-            out = render(*static_splats(model, v, x)["splats"], vm, ks, w, h)
+            out = render(*static_splats(model, v, x)["splats"], vm, ks, w, h, lowpass=model.splat_lowpass)
             data.images[:, t] = out["rgb"]
             if data.masks is not None:
                 data.masks[:, t] = out["alpha"][..., 0]
@@ -72,7 +72,7 @@ def image_loss_at(model, data, cfg, vertices) -> float:
     v_idx = torch.arange(v)
     with torch.no_grad():
         for t in range(1, data.frames - 1):
-            out = render(*static_splats(model, v, vertices[t])["splats"], vm, ks, w, h)
+            out = render(*static_splats(model, v, vertices[t])["splats"], vm, ks, w, h, lowpass=model.splat_lowpass)
             target, mask = batch_targets(data, v_idx, torch.full_like(v_idx, t))
             total += float(image_loss_per_item(out, target, mask, perceptual, cfg).sum())
     return round(total, 5)

@@ -96,7 +96,9 @@ def main(
     w, h = data.size
 
     def draw(x: torch.Tensor) -> dict:
-        return render(*static_splats(model, 1, x[None])["splats"], vm[[cv]], ks[[cv]], w, h)
+        return render(
+            *static_splats(model, 1, x[None])["splats"], vm[[cv]], ks[[cv]], w, h, lowpass=model.splat_lowpass
+        )
 
     with torch.no_grad():
         target, mask = batch_targets(data, torch.tensor([cv]), torch.tensor([peak]))

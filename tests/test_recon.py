@@ -443,26 +443,25 @@ def test_compiled_reconstruction_trains_the_network_after_the_warm_up(device, gr
     assert err[moving].mean() < 0.6 * err_static[moving].mean(), (err[moving].mean(), err_static[moving].mean())
 
 
-def _ten_step_sphere(**overrides):
-    """A tiny two-frame sphere and a 10-step config (6 warm-up) -> (model, data, cfg), for the schedule's tests."""
-    from t2bs.recon.vcdgs import build_model, prepare_data
-
+def _two_frame_sphere():
+    """A tiny sphere moving by 0.01 between its two frames, as a 3-view 32 px grid -> (mesh, grid, static targets)."""
     mesh = sphere_mesh(1)
     frames = np.stack([mesh.vertices, mesh.vertices + 0.01]).astype(np.float32)
-    grid, static = splat_grid(mesh, frames, size=32, views=3)
-    cfg = preset(
-        "quick",
-        face_gaussians=False,
-        silhouette_band=0,
-        resolution=32,
-        static_iters=0,
-        iterations=10,
-        global_iters=6,
-        num_control_points=8,
-        batch_size=2,
-        perceptual="none",
-        **overrides,
-    )
+    return (mesh, *splat_grid(mesh, frames, size=32, views=3))
+
+
+def _ten_step_config(**overrides):
+    """A 10-step quick config (6 warm-up) for that grid; ``overrides`` replace any of its fields."""
+    small = dict(face_gaussians=False, silhouette_band=0, static_iters=0, iterations=10, global_iters=6)
+    return preset("quick", resolution=32, num_control_points=8, batch_size=2, perceptual="none", **small | overrides)
+
+
+def _ten_step_sphere(**overrides):
+    """The two-frame sphere and the 10-step config -> (model, data, cfg), for the schedule's tests."""
+    from t2bs.recon.vcdgs import build_model, prepare_data
+
+    mesh, grid, static = _two_frame_sphere()
+    cfg = _ten_step_config(**overrides)
     data = prepare_data(grid, cfg)
     model, _ = build_model(mesh, data, cfg, static)
     return model, data, cfg
@@ -600,3 +599,32 @@ def test_global_learning_rate_decays_over_the_warm_up_and_continues_in_the_joint
     old = OptimConfig(lr_global_joint=1.0)
     assert _lr_factor("global", False, 0.9, 0.0, old) == 1.0
     assert _lr_factor("global", True, 1.0, 0.5, old) == pytest.approx(0.1**0.5)
+
+
+def test_every_render_of_a_model_uses_its_low_pass(monkeypatch):
+    """``model.splat_lowpass`` reaches the rasterizer in the static fit, every training step and the evaluation, and
+    the trained model carries it (a splat drawn with another low-pass than it was fitted with is another splat)."""
+    import t2bs.render.splat as splat
+    from t2bs.recon.vcdgs import build_model, evaluate_image_loss, prepare_data, train
+
+    seen = []
+    real = splat.rasterize_gaussians
+
+    def spy(*args, lowpass=splat.LOWPASS, **kwargs):
+        seen.append(lowpass)
+        return real(*args, lowpass=lowpass, **kwargs)
+
+    mesh, grid, static = _two_frame_sphere()
+    monkeypatch.setattr(splat, "rasterize_gaussians", spy)
+    cfg = _ten_step_config(splat_lowpass=0.1, face_gaussians=True, static_iters=2, iterations=4, global_iters=2)
+    data = prepare_data(grid, cfg)
+    model, _ = build_model(mesh, data, cfg, static)
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(UserError, match="splat_lowpass"):
+            preset("quick", splat_lowpass=bad)
+    assert model.splat_lowpass == 0.1 and len(seen) >= 2 and set(seen) == {0.1}  # the static fit's steps
+    fitted = len(seen)
+    train(model, data, cfg, progress=False)
+    trained = len(seen)
+    evaluate_image_loss(model, data, cfg)
+    assert fitted + 4 <= trained < len(seen) and set(seen) == {0.1}

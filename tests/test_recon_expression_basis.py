@@ -104,6 +104,12 @@ def test_a_trained_model_with_a_basis_loads_back(tmp_path):
     )
     loaded, _ = load_trained_model(path)
     assert np.allclose(canonical_vertices(loaded), canonical_vertices(model), atol=1e-6)
+    assert loaded.splat_lowpass == model.splat_lowpass == 0.18  # drawn as it was trained
+    # A state saved before the low-pass was a setting was trained with 3DGS's 0.3, and is drawn with it.
+    state = torch.load(path, weights_only=True)
+    del state["config"]["model"]["splat_lowpass"]
+    torch.save(state, path)
+    assert load_trained_model(path)[0].splat_lowpass == 0.3
 
 
 def test_expression_shapes_option_parses_and_checks_names():

@@ -36,9 +36,9 @@ def _random_scene(n, cameras, per_camera, seed, dtype=torch.float32):
     return [means, quats, scales, opac, colors]
 
 
-def _render_with_grads(params, vm, K, w, h, backend, background):
+def _render_with_grads(params, vm, K, w, h, backend, background, **kwargs):
     ps = [p.clone().requires_grad_() for p in params]
-    out = rasterize_gaussians(*ps, vm, K, w, h, background=background, backend=backend)
+    out = rasterize_gaussians(*ps, vm, K, w, h, background=background, backend=backend, **kwargs)
     g = torch.Generator().manual_seed(7)
     loss = sum(
         (out[k] * torch.rand(out[k].shape, generator=g, dtype=out[k].dtype).to(out[k].device)).sum()
@@ -100,11 +100,11 @@ def test_cpu_threads_agree_and_repeat_exactly(kernel):
         assert all(torch.equal(a, b) for a, b in zip(grads, two_g))
 
 
-@pytest.mark.parametrize("per_camera", [False, True])
-def test_cpu_projection_matches_reference(kernel, per_camera):
+@pytest.mark.parametrize("per_camera,lowpass", [(False, 0.3), (True, 0.3), (True, 0.1)])
+def test_cpu_projection_matches_reference(kernel, per_camera, lowpass):
     """The C++ projection (projection.cpp) == reference.project_gaussians: every output, and the
     gradients of means / quats / scales, including culled (behind the camera) and clamped-Jacobian
-    Gaussians and a shared set whose per-camera gradients are summed."""
+    Gaussians and a shared set whose per-camera gradients are summed; at the default low-pass and a smaller one."""
     from t2bs.render.splat.cpu import project_cpu
     from t2bs.render.splat.reference import project_gaussians
 
@@ -121,7 +121,7 @@ def test_cpu_projection_matches_reference(kernel, per_camera):
     def project(fn):
         ps = [x.clone().requires_grad_() for x in (means, quats, scales)]
         shared = [x if per_camera else x.expand(3, *x.shape) for x in ps]
-        pr = fn(*shared, opac, colors, vm, K, 64, 48)
+        pr = fn(*shared, opac, colors, vm, K, 64, 48, lowpass=lowpass)
         v = pr.valid[..., None].float()  # culled Gaussians' conics are placeholders (not composited)
         loss = (pr.means2d * w2 * v).sum() + (pr.conics * wc * v).sum() + (pr.depths * wz[..., 0]).sum()
         loss.backward()
@@ -196,8 +196,10 @@ def test_reference_finite_differences():
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def test_single_gaussian_analytic(kernel):
-    """An isotropic Gaussian on the optical axis: alpha(p) = o exp(-|p-c|^2 / (2 (f s / z)^2 + 0.6))."""
+@pytest.mark.parametrize("backend,lowpass", [("cpu", None), ("cpu", 0.1), ("cpu", 0.0), ("reference", 0.1)])
+def test_single_gaussian_analytic(kernel, backend, lowpass):
+    """An isotropic Gaussian on the optical axis: alpha(p) = o exp(-|p-c|^2 / (2 ((f s / z)^2 + lowpass))), the
+    low-pass 0.3 px^2 unless given."""
     cam = frontal_camera(40)
     vm, K = _cams([cam])
     z = float(cam.world_to_camera[2, 3])  # camera at distance z looking at the origin
@@ -213,9 +215,10 @@ def test_single_gaussian_analytic(kernel):
         K,
         40,
         40,
-        backend="cpu",
+        backend=backend,
+        **({} if lowpass is None else {"lowpass": lowpass}),
     )
-    var = (f * s / z) ** 2 + 0.3
+    var = (f * s / z) ** 2 + (0.3 if lowpass is None else lowpass)
     ys, xs = np.mgrid[0:40, 0:40] + 0.5
     d2 = ((xs - 20.0) ** 2 + (ys - 20.0) ** 2) / var
     expect = o * np.exp(-0.5 * d2)
@@ -335,6 +338,9 @@ def test_bad_input_raises_user_error():
         rasterize_gaussians(*p[:3], p[3][:2], p[4], vm, K, 8, 8)
     with pytest.raises(UserError, match="Ks"):
         rasterize_gaussians(*p, vm, K[0], 8, 8)
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(UserError, match="lowpass"):
+            rasterize_gaussians(*p, vm, K, 8, 8, lowpass=bad)
 
 
 def test_fallback_to_reference_warns(monkeypatch):
@@ -352,16 +358,19 @@ def test_fallback_to_reference_warns(monkeypatch):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("per_camera", [False, True])
-def test_gsplat_matches_cpu(kernel, per_camera):
+@pytest.mark.parametrize("lowpass", [0.3, 0.1])
+def test_gsplat_matches_cpu(kernel, per_camera, lowpass):
     """The CUDA path (gsplat) and the C++ CPU path: same images and gradients up to the footprint
-    cut-off (gsplat: a 3-sigma circle per tile; ours: the 3-sigma ellipse per pixel)."""
+    cut-off (gsplat: a 3-sigma circle per tile; ours: the 3-sigma ellipse per pixel), at two low-passes."""
     pytest.importorskip("gsplat")
     cams = orbit_cameras(views=2, size=64)
     vm, K = _cams(cams)
     p = _random_scene(500, 2, per_camera, seed=5)
     bg = torch.tensor([[0.2, 0.3, 0.4], [1.0, 1.0, 1.0]])
-    cpu_out, cpu_grads = _render_with_grads(p, vm, K, 64, 64, "cpu", bg)
-    gpu_out, gpu_grads = _render_with_grads([x.cuda() for x in p], vm.cuda(), K.cuda(), 64, 64, "auto", bg.cuda())
+    cpu_out, cpu_grads = _render_with_grads(p, vm, K, 64, 64, "cpu", bg, lowpass=lowpass)
+    gpu_out, gpu_grads = _render_with_grads(
+        [x.cuda() for x in p], vm.cuda(), K.cuda(), 64, 64, "auto", bg.cuda(), lowpass=lowpass
+    )
     assert gpu_out["rgb"].is_cuda
     # Measured on an H100 with gsplat 1.5.3: mean abs rgb 7e-4, alpha 1.3e-3, alpha-weighted depth
     # 5e-4; gradient cosines >= 0.996 (the fringe pixels the cut-offs disagree on carry little weight).

@@ -59,6 +59,11 @@ class ModelConfig:
     time_freqs: int = 5  # Fourier frequencies of normalised time
     view_freqs: int = 3  # Fourier frequencies of the normalised view index
     view_residual_static: bool = True  # view residuals depend on the view only (False: on (view, time), the paper's)
+    # px^2 the rasterizer adds to each splat's 2D covariance in the static fit, the training and every render of the
+    # model. 3DGS's 0.3 (the paper preset's) blurs every edge by ~0.55 px: at 128 px it drew facecap's ~3 px eye
+    # openings half shut. 0.18: clean table mean 0.432 -> 0.407 of the rigid oracle, p2p moving -4.6 %; 0.1 and 0.03
+    # drew the eyes sharper still but moved the whole head (facecap blinking p2p +31 % / +64 %)
+    splat_lowpass: float = 0.18
     # The global SE(3) learns only from the vertices that no expression-basis shape moves by more than this fraction of
     # its largest motion (the skull, not the lids, lips and jaw), so a small expression is not taken as a head turn
     # (opt-in, 0 = from every vertex: clean grids gain, paper-like defects do not; docs/VCDGS_NOTES.md, "The head motion
@@ -259,6 +264,8 @@ class VCDGSConfig:
                 f"expression_pick must be fractions in [0, 1) of the joint stage, got {o.expression_pick}; "
                 "expression_pick_views >= 1"
             )
+        if not self.model.splat_lowpass >= 0:  # NaN too
+            raise UserError(f"splat_lowpass must be >= 0 px^2, got {self.model.splat_lowpass}")
         from t2bs.face.arkit import ARKIT_NAMES
 
         unknown = [n for n in self.model.expression_shapes if n not in ARKIT_NAMES]
@@ -352,6 +359,7 @@ PRESETS = {
         batch_size=4,
         pyramid_levels=4,
         max_face_gaussians=0,
+        splat_lowpass=0.3,  # 3DGS's; at 512 px its blur is a quarter as wide against the face (not measured otherwise)
         checkpoint_every=2000,
         device="auto",
         # a step of ~2300 small kernels is launch-bound on a GPU: compiled and replayed as CUDA graphs its joint step

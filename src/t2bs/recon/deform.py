@@ -216,6 +216,7 @@ class VCDGSModel(nn.Module):
             "face_log_scale", None if face_log_scale is None else torch.as_tensor(face_log_scale, dtype=f32)
         )  # [F]
         self.flatness = cfg.static_fit.flatness
+        self.splat_lowpass = cfg.model.splat_lowpass  # px^2 every render of this model adds to a splat's footprint
         self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
         self.register_buffer("quats", torch.as_tensor(quats, dtype=f32))  # [N, 4] XYZW
         # Each vertex Gaussian's shift off its vertex (gaussians.fit_static_gaussians) as a fixed combination of its

@@ -62,7 +62,7 @@ def pick_expression_weights(
         for s in range(0, len(v_idx), chunk):
             sl = slice(s, s + chunk)
             deformed = model(v_idx[sl], t_idx[sl], refine=refine, expression=expr[sl])
-            r = render(*deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h)
+            r = render(*deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h, lowpass=model.splat_lowpass)
             tgt, msk = batch_targets(data, v_idx[sl], t_idx[sl])
             out.append(image_loss_per_item(r, tgt, msk, perceptual, cfg))
         return torch.cat(out).view(len(views), c).sum(0)

@@ -26,6 +26,7 @@ from t2bs.geometry.mesh import (
     weld_index,
 )
 from t2bs.recon.lbs import quat_from_normals, to_wxyz
+from t2bs.render.splat.reference import LOWPASS
 
 _warned_backend = False
 
@@ -140,10 +141,12 @@ def render(
     height: int,
     background=(1.0, 1.0, 1.0),
     backend: str = "auto",
+    lowpass: float = LOWPASS,
 ) -> dict:
     """Splat render with the Gaussians in this package's convention (XYZW quats, opacity 1).
 
-    Shapes: [C, N, ...] or [N, ...] per tensor; returns rgb [C, H, W, 3], alpha [C, H, W, 1].
+    Shapes: [C, N, ...] or [N, ...] per tensor; returns rgb [C, H, W, 3], alpha [C, H, W, 1]. ``lowpass``: px^2
+    added to each splat's 2D covariance (``ModelConfig.splat_lowpass``; the rasterizer's default is 3DGS's 0.3).
     Falls back to the reference rasterizer (once warned) when the fast CPU kernel is missing.
     """
     from t2bs.render.splat import rasterize_gaussians
@@ -154,14 +157,14 @@ def render(
     bg = torch.tensor(background, dtype=means.dtype, device=means.device)
     args = (means, to_wxyz(quats_xyzw), scales, opac, colors, viewmats, ks, width, height)
     try:
-        return rasterize_gaussians(*args, background=bg, backend=backend)
+        return rasterize_gaussians(*args, background=bg, backend=backend, lowpass=lowpass)
     except ImportError as exc:  # the fast kernel's module is not there (yet): same rules, slower
         if not _warned_backend:
             warnings.warn(
                 f"splat backend {backend!r} unavailable ({exc}); using the reference rasterizer", stacklevel=2
             )
             _warned_backend = True
-        return rasterize_gaussians(*args, background=bg, backend="reference")
+        return rasterize_gaussians(*args, background=bg, backend="reference", lowpass=lowpass)
 
 
 def with_faces(means, quats, scales, colors, faces, face_colors, face_log_scale, flatness: float = 0.25):
@@ -313,6 +316,7 @@ def fit_static_gaussians(
     device: str = "cpu",
     progress: bool = False,
     offset_faces: np.ndarray | None = None,
+    lowpass: float = LOWPASS,
 ) -> StaticGaussians:
     """Fit scales and orientations to ``targets`` [C, H, W, 3] float 0..1 (renders of the
     static mesh from ``cameras``), ``masks`` [C, H, W] float or None. The vertices stay fixed.
@@ -322,7 +326,7 @@ def fit_static_gaussians(
     plus the rasterizer's 0.3 px^2 low-pass, so the splat part looks larger than the mesh part; at rest the excess
     often lies over skin of the same colour and costs nothing, but once the lid slides over the eye it covers too
     much, and the photometric optimum of its motion falls short (to 0.73 of a lid's turn). Shifted inwards, the
-    edge Gaussians end where the part ends."""
+    edge Gaussians end where the part ends. ``lowpass``: the rasterizer's px^2 (``render``), as the model will be drawn."""
     if iters <= 0:
         return gs
     from tqdm import tqdm
@@ -367,7 +371,7 @@ def fit_static_gaussians(
         g = (centres[None], q[None], log_s.exp()[None], torch.sigmoid(col_logit)[None])
         if faces is not None:  # the face Gaussians span the shifted centres: an edge triangle shrinks inwards too
             g = with_faces(*g, faces, torch.sigmoid(fcol_logit), flog)
-        out = render(g[0][0], g[1][0], g[2][0], g[3][0], vm[idx], ks[idx], w, h)
+        out = render(g[0][0], g[1][0], g[2][0], g[3][0], vm[idx], ks[idx], w, h, lowpass=lowpass)
         loss = (out["rgb"] - tgt[idx]).abs().mean()
         if msk is not None:
             loss = loss + 0.5 * (out["alpha"][..., 0] - msk[idx]).abs().mean()

@@ -202,6 +202,7 @@ def build_model(
             device=_device(cfg).type,
             progress=progress,
             offset_faces=mesh.faces if cfg.static_fit.splat_offsets else None,
+            lowpass=cfg.model.splat_lowpass,
         )
     cps = build_control_points(
         mesh.vertices,
@@ -410,10 +411,10 @@ def warm_up_steps(model: VCDGSModel, optim) -> int:
 
 
 @torch.compiler.disable
-def _render_uncompiled(*args):
+def _render_uncompiled(*args, **kwargs):
     """``render``, kept out of a compiled step (config.runtime.compile): the rasterizers are C++/CUDA kernels already,
     and tracing into gsplat's Python recompiles at every new number of tile intersections."""
-    return render(*args)
+    return render(*args, **kwargs)
 
 
 def step_terms(
@@ -436,7 +437,7 @@ def step_terms(
     rasterization call cover the whole batch. -> {name: scalar tensor}; the loss is their sum."""
     w, h = data.size
     out = model(v_idx, t_idx, refine=joint, deform_grad=joint)
-    r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h)
+    r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass)
     tgt, msk = batch_targets(data, v_idx, t_idx)
     terms = image_loss(r, tgt, msk, perceptual, cfg)
     if data.tracks is not None and cfg.tracks.track_weight > 0:
@@ -774,7 +775,7 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
                 out = model(v_idx, t_idx, refine=False)
             else:
                 out = static_splats(model, len(t_idx))
-            r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h)
+            r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass)
             tgt = batch_targets(data, v_idx, t_idx)[0].to(dev)
             total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.loss.huber_delta)) * len(t_idx)
             count += len(t_idx)
@@ -943,6 +944,8 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
     try:
         state = torch.load(state_path, map_location="cpu", weights_only=True)
         sd, raw = state["model"], dict(state["config"])
+        # a model saved before the field existed was fitted, trained and drawn with 3DGS's low-pass
+        raw["model"] = {"splat_lowpass": 0.3, **(raw.get("model") or {})}
         cfg = VCDGSConfig.from_dict(raw)
         faces = sd.get("faces")
         model = VCDGSModel(

@@ -24,7 +24,7 @@ import torch
 
 from t2bs.errors import UserError
 
-from .reference import finish, project_gaussians, rasterize_reference_projected
+from .reference import LOWPASS, finish, project_gaussians, rasterize_reference_projected
 
 BACKENDS = ("auto", "reference", "cpu", "gsplat", "dense")
 
@@ -45,7 +45,19 @@ def _per_camera(name: str, x: torch.Tensor, C: int, tail: tuple[int, ...]) -> to
 
 
 def rasterize_gaussians(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, background=None, backend="auto", near=0.01
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    background=None,
+    backend="auto",
+    near=0.01,
+    lowpass=LOWPASS,
 ):
     """Render Gaussians into C cameras.
 
@@ -62,6 +74,8 @@ def rasterize_gaussians(
         background: None (black, i.e. premultiplied), [3] or [C, 3] RGB composited behind.
         backend:   "auto" | "reference" | "cpu" | "gsplat" | "dense".
         near:      Gaussians with camera depth <= near are culled.
+        lowpass:   px^2 added to every 2D covariance's diagonal (3DGS's and gsplat's eps2d, 0.3 by default): the
+                   least footprint a Gaussian has on screen, and a blur of ~sqrt(lowpass) px on every edge.
     Returns dict:
         rgb   [C, H, W, 3]: sum_i w_i c_i + (1 - alpha) * background,
         alpha [C, H, W, 1]: 1 - final transmittance,
@@ -73,6 +87,8 @@ def rasterize_gaussians(
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise UserError(f"rasterize_gaussians: image size must be positive, got {width}x{height}")
+    if not lowpass >= 0:  # NaN too
+        raise UserError(f"rasterize_gaussians: lowpass must be >= 0 px^2, got {lowpass}")
     if viewmats.dim() != 3 or tuple(viewmats.shape[1:]) != (4, 4):
         raise UserError(f"rasterize_gaussians: viewmats has shape {tuple(viewmats.shape)}, expected [C, 4, 4]")
     C = viewmats.shape[0]
@@ -103,7 +119,9 @@ def rasterize_gaussians(
     if backend == "gsplat":
         from .gsplat_backend import rasterize_gsplat
 
-        return rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near)
+        return rasterize_gsplat(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near, lowpass
+        )
 
     project, composite = project_gaussians, rasterize_reference_projected
     if backend == "cpu":
@@ -114,7 +132,7 @@ def rasterize_gaussians(
         from .dense import rasterize_dense_projected
 
         composite = rasterize_dense_projected
-    proj = project(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
+    proj = project(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, lowpass)
     acc_rgb, alpha, acc_depth = composite(proj, width, height)
     return finish(acc_rgb, alpha, acc_depth, background)
 

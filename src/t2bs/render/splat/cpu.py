@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from .reference import TILE, Projected, is_shared_set, project_gaussians, rasterize_reference_projected
+from .reference import LOWPASS, TILE, Projected, is_shared_set, project_gaussians, rasterize_reference_projected
 
 _HERE = Path(__file__).parent
 _SOURCES = [_HERE / "kernel.cpp", _HERE / "projection.cpp", _HERE / "faces.cpp", _HERE / "skinning.cpp"]
@@ -115,14 +115,14 @@ class _Project(torch.autograd.Function):
     """(means, quats, scales) [1 | C, N, k] -> (means2d, conics, depths), C++ both ways (projection.cpp)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near):
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, lowpass):
         ext = load_kernel()
         args = [t.detach().contiguous() for t in (means, quats, scales, viewmats, Ks)]
         means2d, conics, depths, d2max, radii, valid = ext.project_forward(
-            *args[:3], opacities.detach().contiguous(), *args[3:], width, height, near
+            *args[:3], opacities.detach().contiguous(), *args[3:], width, height, near, lowpass
         )
         ctx.save_for_backward(*args)
-        ctx.size = (width, height, near)
+        ctx.size = (width, height, near, lowpass)
         ctx.mark_non_differentiable(d2max, radii, valid)
         return means2d, conics, depths, d2max, radii, valid
 
@@ -147,10 +147,12 @@ class _Project(torch.autograd.Function):
         g_means, g_quats, g_scales = (
             g if x.shape[0] == C else g.sum(0, keepdim=True) for g, x in zip(grads, (means, quats, scales))
         )
-        return g_means, g_quats, g_scales, None, None, None, None, None, None
+        return g_means, g_quats, g_scales, None, None, None, None, None, None, None
 
 
-def project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01) -> Projected:
+def project_cpu(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01, lowpass=LOWPASS
+) -> Projected:
     """``reference.project_gaussians`` in C++ (same arguments and result). Falls back to it when
     the kernel is missing, a tensor is not float32 on the CPU, or the cameras need a gradient
     (the C++ backward gives none to them)."""
@@ -161,12 +163,12 @@ def project_cpu(means, quats, scales, opacities, colors, viewmats, Ks, width, he
         or viewmats.requires_grad
         or Ks.requires_grad
     ):
-        return project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near)
+        return project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, lowpass)
 
     # A set shared by every camera goes in as [1, N, k] (not copied C times).
     means, quats, scales = (x[:1] if is_shared_set(x) else x for x in (means, quats, scales))
     means2d, conics, depths, d2max, radii, valid = _Project.apply(
-        means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near)
+        means, quats, scales, opacities, viewmats, Ks, int(width), int(height), float(near), float(lowpass)
     )
     return Projected(means2d, conics, depths, opacities, colors, d2max, radii, valid)
 

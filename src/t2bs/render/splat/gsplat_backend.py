@@ -1,7 +1,7 @@
 """CUDA backend: ``gsplat.rasterization`` with this package's conventions.
 
 gsplat already uses ours: quats wxyz (normalised inside), linear scales, OpenCV world->camera
-viewmats, pinhole Ks, eps2d = 0.3 px^2 low-pass, alpha clamp 0.99, 1/255 skip and early stop at
+viewmats, pinhole Ks, eps2d = our low-pass (px^2), alpha clamp 0.99, 1/255 skip and early stop at
 T < 1e-4. Its "RGB+ED" mode returns the expected depth sum(w z) / alpha as a 4th channel, which is
 our depth. Differences to the CPU backends are confined to the footprint cut-off (gsplat bins a
 3-sigma circle of the largest eigenvalue per tile; we cut the 3-sigma ellipse per pixel), which
@@ -19,6 +19,8 @@ import torch
 
 from t2bs.errors import UserError
 
+from .reference import LOWPASS
+
 
 def _shared(x: torch.Tensor) -> bool:
     """True when a [C, N, ...] tensor is a broadcast view of one [N, ...] set (stride 0 on C)."""
@@ -34,7 +36,9 @@ def _batch_dims_supported() -> bool:
     return (major, minor) >= (1, 5)
 
 
-def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near):
+def rasterize_gsplat(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, background, near, lowpass=LOWPASS
+):
     """Inputs already broadcast to [C, N, ...] (see rasterize_gaussians); returns the same dict."""
     try:
         from gsplat import rasterization
@@ -47,7 +51,7 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, widt
         width=width,
         height=height,
         near_plane=near,
-        eps2d=0.3,
+        eps2d=lowpass,
         render_mode="RGB+ED",
         rasterize_mode="classic",
         packed=False,

@@ -350,11 +350,11 @@ torch::Tensor splat_backward(torch::Tensor means2d, torch::Tensor conics, torch:
 // projection.cpp
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                            torch::Tensor opac, torch::Tensor viewmats, torch::Tensor Ks,
-                                           int64_t W, int64_t H, double near);
+                                           int64_t W, int64_t H, double near, double lowpass);
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                             torch::Tensor viewmats, torch::Tensor Ks, int64_t W, int64_t H,
-                                            double near, torch::Tensor g_means2d, torch::Tensor g_conics,
-                                            torch::Tensor g_depths);
+                                            double near, double lowpass, torch::Tensor g_means2d,
+                                            torch::Tensor g_conics, torch::Tensor g_depths);
 
 // faces.cpp
 std::vector<torch::Tensor> faces_forward(torch::Tensor x, torch::Tensor faces, torch::Tensor log_scale,

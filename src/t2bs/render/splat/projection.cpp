@@ -2,7 +2,7 @@
 //
 // The same rules and float operations as reference.project_gaussians (see its docstring): camera
 // point p = R m + t; x/z, y/z clamped to 1.3x the half field of view for the Jacobian; rows of J W
-// times M = R(q) S give the 2D covariance plus a 0.3 px^2 low-pass; conic = its inverse. The torch
+// times M = R(q) S give the 2D covariance plus the caller's low-pass (px^2); conic = its inverse. The torch
 // version runs ~60 element-wise ops per pass over [C, N] tensors (each a full memory sweep), this
 // one a single pass; results agree to float rounding (the camera point comes from a BLAS matmul in
 // torch, a plain dot product here), tested in tests/test_splat.py.
@@ -25,7 +25,6 @@ namespace {
 
 using t2bs_splat::parallel_items;
 
-constexpr float LOWPASS = 0.3f;
 constexpr float EXTENT_SIGMA2 = 9.0f;
 constexpr float ALPHA_MIN = 1.0f / 255.0f;
 
@@ -67,7 +66,8 @@ struct Proj {
   float sa, sb, sc, inv_det;
 };
 
-void project_one(const Camera& cam, const float* m, const float* q, const float* s, float near, Proj& p) {
+void project_one(const Camera& cam, const float* m, const float* q, const float* s, float near, float lowpass,
+                 Proj& p) {
   const float* R = cam.R;
   p.x = (R[0] * m[0] + R[1] * m[1] + R[2] * m[2]) + cam.t[0];
   p.y = (R[3] * m[0] + R[4] * m[1] + R[5] * m[2]) + cam.t[1];
@@ -101,9 +101,9 @@ void project_one(const Camera& cam, const float* m, const float* q, const float*
     p.P0[j] = (p.T0[0] * p.M[j] + p.T0[1] * p.M[3 + j]) + p.T0[2] * p.M[6 + j];
     p.P1[j] = (p.T1[0] * p.M[j] + p.T1[1] * p.M[3 + j]) + p.T1[2] * p.M[6 + j];
   }
-  p.sa = ((p.P0[0] * p.P0[0] + p.P0[1] * p.P0[1]) + p.P0[2] * p.P0[2]) + LOWPASS;
+  p.sa = ((p.P0[0] * p.P0[0] + p.P0[1] * p.P0[1]) + p.P0[2] * p.P0[2]) + lowpass;
   p.sb = (p.P0[0] * p.P1[0] + p.P0[1] * p.P1[1]) + p.P0[2] * p.P1[2];
-  p.sc = ((p.P1[0] * p.P1[0] + p.P1[1] * p.P1[1]) + p.P1[2] * p.P1[2]) + LOWPASS;
+  p.sc = ((p.P1[0] * p.P1[0] + p.P1[1] * p.P1[1]) + p.P1[2] * p.P1[2]) + lowpass;
   const float det = p.sa * p.sc - p.sb * p.sb;
   p.ok_det = det > 0;
   p.inv_det = 1.0f / (p.ok_det ? det : 1.0f);
@@ -120,7 +120,7 @@ void check(const torch::Tensor& t, const char* name, int64_t last) {
 template <class F>
 void for_each_projected(const torch::Tensor& means, const torch::Tensor& quats, const torch::Tensor& scales,
                         const torch::Tensor& viewmats, const torch::Tensor& Ks, int64_t W, int64_t H, double near,
-                        F&& fn) {
+                        double lowpass, F&& fn) {
   check(means, "means", 3);
   check(quats, "quats", 4);
   check(scales, "scales", 3);
@@ -129,12 +129,12 @@ void for_each_projected(const torch::Tensor& means, const torch::Tensor& quats, 
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   const int64_t sm = means.size(0) > 1 ? N : 0, sq = quats.size(0) > 1 ? N : 0, ss = scales.size(0) > 1 ? N : 0;
   const int64_t total = C * N, chunk = 4096;
-  const float fnear = (float)near;
+  const float fnear = (float)near, flow = (float)lowpass;
   parallel_items((total + chunk - 1) / chunk, at::get_num_threads(), [&](int64_t ci, int) {
     Proj p;
     for (int64_t i = ci * chunk, e = std::min(total, i + chunk); i < e; ++i) {
       const int64_t c = i / N, n = i % N;
-      project_one(cams[c], pm + 3 * (c * sm + n), pq + 4 * (c * sq + n), ps + 3 * (c * ss + n), fnear, p);
+      project_one(cams[c], pm + 3 * (c * sm + n), pq + 4 * (c * sq + n), ps + 3 * (c * ss + n), fnear, flow, p);
       fn(i, cams[c], p);
     }
   });
@@ -145,7 +145,7 @@ void for_each_projected(const torch::Tensor& means, const torch::Tensor& quats, 
 // Returns means2d [C,N,2], conics [C,N,3], depths [C,N], d2max [C,N], radii [C,N,2], valid [C,N] bool.
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                            torch::Tensor opac, torch::Tensor viewmats, torch::Tensor Ks,
-                                           int64_t W, int64_t H, double near) {
+                                           int64_t W, int64_t H, double near, double lowpass) {
   const int64_t C = viewmats.size(0), N = means.size(1);
   TORCH_CHECK(opac.scalar_type() == torch::kFloat32 && opac.is_contiguous() && opac.size(0) == C && opac.size(1) == N,
               "opacities must be a contiguous float32 [C, N] tensor");
@@ -157,7 +157,7 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
   float *o_m = means2d.data_ptr<float>(), *o_c = conics.data_ptr<float>(), *o_z = depths.data_ptr<float>();
   float *o_d = d2max.data_ptr<float>(), *o_r = radii.data_ptr<float>();
   bool* o_v = valid.data_ptr<bool>();
-  for_each_projected(means, quats, scales, viewmats, Ks, W, H, near, [&](int64_t i, const Camera& cam, const Proj& p) {
+  const auto each = [&](int64_t i, const Camera& cam, const Proj& p) {
     const float ca = p.sc * p.inv_det, cb = -p.sb * p.inv_det, cc = p.sa * p.inv_det;
     const float mx = cam.fx * p.x * p.inv_z + cam.cx, my = cam.fy * p.y * p.inv_z + cam.cy;
     o_c[3 * i] = ca; o_c[3 * i + 1] = cb; o_c[3 * i + 2] = cc;
@@ -176,15 +176,16 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
     o_v[i] = ok;
     o_r[2 * i] = ok ? rx : 0.0f;
     o_r[2 * i + 1] = ok ? ry : 0.0f;
-  });
+  };
+  for_each_projected(means, quats, scales, viewmats, Ks, W, H, near, lowpass, each);
   return {means2d, conics, depths, d2max, radii, valid};
 }
 
 // Gradients of (means2d, conics, depths) -> per camera [C,N,3] means, [C,N,4] quats, [C,N,3] scales.
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                             torch::Tensor viewmats, torch::Tensor Ks, int64_t W, int64_t H,
-                                            double near, torch::Tensor g_means2d, torch::Tensor g_conics,
-                                            torch::Tensor g_depths) {
+                                            double near, double lowpass, torch::Tensor g_means2d,
+                                            torch::Tensor g_conics, torch::Tensor g_depths) {
   const int64_t C = viewmats.size(0), N = means.size(1);
   for (const torch::Tensor* t : {&g_means2d, &g_conics, &g_depths})
     TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous() && t->size(0) == C && t->size(1) == N,
@@ -193,7 +194,7 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
   auto gm = torch::empty({C, N, 3}, f32), gq = torch::empty({C, N, 4}, f32), gs = torch::empty({C, N, 3}, f32);
   const float *g2 = g_means2d.data_ptr<float>(), *gc = g_conics.data_ptr<float>(), *gz_in = g_depths.data_ptr<float>();
   float *o_m = gm.data_ptr<float>(), *o_q = gq.data_ptr<float>(), *o_s = gs.data_ptr<float>();
-  for_each_projected(means, quats, scales, viewmats, Ks, W, H, near, [&](int64_t i, const Camera& cam, const Proj& p) {
+  const auto each = [&](int64_t i, const Camera& cam, const Proj& p) {
     const float* R = cam.R;
     // conic = (sc, -sb, sa) / det with det = sa sc - sb^2 (inv_det is a constant 1 where det <= 0).
     const float gA = gc[3 * i], gB = gc[3 * i + 1], gC = gc[3 * i + 2];
@@ -258,6 +259,7 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
     } else {
       for (int k = 0; k < 4; ++k) oq[k] = gq_[k] * 1e12f;
     }
-  });
+  };
+  for_each_projected(means, quats, scales, viewmats, Ks, W, H, near, lowpass, each);
   return {gm, gq, gs};
 }

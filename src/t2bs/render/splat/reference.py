@@ -5,7 +5,7 @@ reference compositor that defines the rules the fast kernel must reproduce bit f
 Rules (identical in every backend, so they agree to float rounding):
 - Projection (EWA): camera-space covariance W R S S^T R^T W^T, pushed through the Jacobian of the
   perspective map at the mean (x/z, y/z clamped to 1.3x the half field of view like 3DGS/gsplat),
-  plus a 0.3 px^2 low-pass dilation on the diagonal. Pixel (row i, col j) has its centre at
+  plus a low-pass dilation on the diagonal (``lowpass`` px^2; 3DGS's and gsplat's 0.3 by default). Pixel (row i, col j) has its centre at
   (j + 0.5, i + 0.5) in the K convention (OpenCV, principal point W/2 = image centre).
 - A Gaussian is culled when its camera depth z <= near, its 2D covariance is not positive
   definite, or its opacity is below 1/255.
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 TILE = 16  # tile edge in pixels (binning granularity; results do not depend on it)
-LOWPASS = 0.3  # px^2 added to the 2D covariance diagonal (3DGS/gsplat eps2d)
+LOWPASS = 0.3  # default px^2 added to the 2D covariance diagonal (3DGS/gsplat eps2d)
 EXTENT_SIGMA2 = 9.0  # squared Mahalanobis cut-off: the 3-sigma ellipse
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
 ALPHA_MAX = 0.99  # alpha clamp (keeps 1 - alpha invertible for the backward pass)
@@ -73,7 +73,9 @@ def is_shared_set(x: torch.Tensor) -> bool:
     return x.dim() == 3 and (x.shape[0] == 1 or x.stride(0) == 0)
 
 
-def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01) -> Projected:
+def project_gaussians(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01, lowpass=LOWPASS
+) -> Projected:
     """EWA projection of N Gaussians into C cameras.
 
     means/quats/scales may be shared ([N, ...], or a stride-0 expand of it) or per camera
@@ -110,9 +112,9 @@ def project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, wid
     # (J W R S) rows: [C, N, 3]; cov2d = (J W M)(J W M)^T.
     P0 = (T0[..., :, None] * M).sum(-2)
     P1 = (T1[..., :, None] * M).sum(-2)
-    sa = (P0 * P0).sum(-1) + LOWPASS
+    sa = (P0 * P0).sum(-1) + lowpass
     sb = (P0 * P1).sum(-1)
-    sc = (P1 * P1).sum(-1) + LOWPASS
+    sc = (P1 * P1).sum(-1) + lowpass
     det = sa * sc - sb * sb
     ok_det = det > 0
     inv_det = 1.0 / torch.where(ok_det, det, torch.ones_like(det))
