@@ -59,9 +59,9 @@ def main(
     from t2bs.geometry.rigid import apply_motion, remove_motion, robust_rigid_motion
     from t2bs.recon.expression_basis import expression_basis
     from t2bs.recon.config import parse_options, preset
-    from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.gaussians import camera_tensors
     from t2bs.recon.losses import PerceptualLoss, image_loss
-    from t2bs.recon.vcdgs import _sample, batch_targets, build_model, prepare_data, static_splats
+    from t2bs.recon.vcdgs import _sample, batch_targets, build_model, prepare_data, render_model, static_splats
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -107,9 +107,7 @@ def main(
     for _ in range(steps):
         v_idx, t_idx = _sample(gen, data, cfg.optim.batch_size, 0.0)
         x = pose(t_idx, amp[t_idx])
-        out = render(
-            *static_splats(model, len(t_idx), x)["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass
-        )
+        out = render_model(model, static_splats(model, len(t_idx), x)["splats"], vm[v_idx], ks[v_idx], w, h)
         target, mask = batch_targets(data, v_idx, t_idx)
         loss = sum(image_loss(out, target, mask, perceptual, cfg).values())
         opt.zero_grad()

@@ -56,9 +56,9 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     from t2bs.geometry.metrics import expression_metrics
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.project import Project, atomic_path
-    from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.gaussians import camera_tensors
     from t2bs.recon.images import resize_stack
-    from t2bs.recon.vcdgs import load_trained_model
+    from t2bs.recon.vcdgs import load_trained_model, render_model
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.grid import load_grid
 
@@ -83,7 +83,7 @@ def view_video(project_dir: Path, video: str, size: int, peaks: int, crop: bool)
     with MeshRenderer() as renderer, torch.no_grad():
         for t in frames:
             out = model(torch.tensor([c]), torch.tensor([t]), refine=False)
-            splat = render(*out["splats"], vm, ks, size, size, lowpass=model.splat_lowpass)["rgb"][0].numpy()
+            splat = render_model(model, out["splats"], vm, ks, size, size)["rgb"][0].numpy()
             tiles = [inputs[t], splat, renderer.render(mesh, cam, vertices=verts[t], shading=shading).rgb]
             if gt is not None:
                 tiles.append(renderer.render(mesh, cam, vertices=gt[t], shading=shading).rgb)

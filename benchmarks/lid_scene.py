@@ -37,8 +37,8 @@ def self_targets(model, data, gt_vertices) -> None:
     """Overwrite ``data``'s images (and masks) with the model's static Gaussians rendered at ``gt_vertices`` [T, N, 3]."""
     import torch
 
-    from t2bs.recon.gaussians import camera_tensors, render
-    from t2bs.recon.vcdgs import static_splats
+    from t2bs.recon.gaussians import camera_tensors
+    from t2bs.recon.vcdgs import render_model, static_splats
 
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -46,7 +46,7 @@ def self_targets(model, data, gt_vertices) -> None:
     with torch.no_grad():
         for t in range(data.frames):
             x = torch.as_tensor(gt_vertices[t])[None].expand(v, -1, -1)
-            out = render(*static_splats(model, v, x)["splats"], vm, ks, w, h, lowpass=model.splat_lowpass)
+            out = render_model(model, static_splats(model, v, x)["splats"], vm, ks, w, h)
             data.images[:, t] = out["rgb"]
             if data.masks is not None:
                 data.masks[:, t] = out["alpha"][..., 0]
@@ -60,9 +60,9 @@ def image_loss_at(model, data, cfg, vertices) -> float:
     ``vertices`` [T, V, N, 3] (per frame and view)."""
     import torch
 
-    from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.gaussians import camera_tensors
     from t2bs.recon.losses import PerceptualLoss, image_loss_per_item
-    from t2bs.recon.vcdgs import batch_targets, static_splats
+    from t2bs.recon.vcdgs import batch_targets, render_model, static_splats
 
     vm, ks = camera_tensors(data.cameras)
     w, h = data.size
@@ -72,7 +72,7 @@ def image_loss_at(model, data, cfg, vertices) -> float:
     v_idx = torch.arange(v)
     with torch.no_grad():
         for t in range(1, data.frames - 1):
-            out = render(*static_splats(model, v, vertices[t])["splats"], vm, ks, w, h, lowpass=model.splat_lowpass)
+            out = render_model(model, static_splats(model, v, vertices[t])["splats"], vm, ks, w, h)
             target, mask = batch_targets(data, v_idx, torch.full_like(v_idx, t))
             total += float(image_loss_per_item(out, target, mask, perceptual, cfg).sum())
     return round(total, 5)

@@ -54,9 +54,9 @@ def main(
     from t2bs.geometry.metrics import expression_metrics
     from t2bs.geometry.rigid import apply_rigid_frames, remove_motion, robust_rigid_motion
     from t2bs.recon.config import parse_options, preset
-    from t2bs.recon.gaussians import camera_tensors, render
+    from t2bs.recon.gaussians import camera_tensors
     from t2bs.recon.losses import silhouette_band
-    from t2bs.recon.vcdgs import batch_targets, reconstruct_grid, static_splats
+    from t2bs.recon.vcdgs import batch_targets, reconstruct_grid, render_model, static_splats
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -96,9 +96,7 @@ def main(
     w, h = data.size
 
     def draw(x: torch.Tensor) -> dict:
-        return render(
-            *static_splats(model, 1, x[None])["splats"], vm[[cv]], ks[[cv]], w, h, lowpass=model.splat_lowpass
-        )
+        return render_model(model, static_splats(model, 1, x[None])["splats"], vm[[cv]], ks[[cv]], w, h)
 
     with torch.no_grad():
         target, mask = batch_targets(data, torch.tensor([cv]), torch.tensor([peak]))

@@ -41,7 +41,7 @@ def pick_expression_weights(
     items rendered at once. Returns {"changed": weights moved, "frames": T, "shapes": J, "seconds": ...}."""
     from t2bs.recon.gaussians import camera_tensors
     from t2bs.recon.losses import image_loss_per_item
-    from t2bs.recon.vcdgs import batch_targets, render
+    from t2bs.recon.vcdgs import batch_targets, render_model
 
     t0 = time.time()
     dev = model.means.device
@@ -62,7 +62,7 @@ def pick_expression_weights(
         for s in range(0, len(v_idx), chunk):
             sl = slice(s, s + chunk)
             deformed = model(v_idx[sl], t_idx[sl], refine=refine, expression=expr[sl])
-            r = render(*deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h, lowpass=model.splat_lowpass)
+            r = render_model(model, deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h)
             tgt, msk = batch_targets(data, v_idx[sl], t_idx[sl])
             out.append(image_loss_per_item(r, tgt, msk, perceptual, cfg))
         return torch.cat(out).view(len(views), c).sum(0)

@@ -323,10 +323,11 @@ def fit_static_gaussians(
 
     ``offset_faces`` [F, 3] (the mesh's triangles): also fit ``offsets``, a shift of each vertex Gaussian along the
     surface. A Gaussian centred on a part's edge (a lid's margin, a lip's) spreads past it by about its own size
-    plus the rasterizer's 0.3 px^2 low-pass, so the splat part looks larger than the mesh part; at rest the excess
+    plus the rasterizer's low-pass, so the splat part looks larger than the mesh part; at rest the excess
     often lies over skin of the same colour and costs nothing, but once the lid slides over the eye it covers too
     much, and the photometric optimum of its motion falls short (to 0.73 of a lid's turn). Shifted inwards, the
-    edge Gaussians end where the part ends. ``lowpass``: the rasterizer's px^2 (``render``), as the model will be drawn."""
+    edge Gaussians end where the part ends. ``lowpass``: the rasterizer's px^2 (``render``), as the model will be
+    drawn."""
     if iters <= 0:
         return gs
     from tqdm import tqdm

@@ -417,6 +417,13 @@ def _render_uncompiled(*args, **kwargs):
     return render(*args, **kwargs)
 
 
+def render_model(model: VCDGSModel, splats, viewmats: torch.Tensor, ks: torch.Tensor, width: int, height: int) -> dict:
+    """Draw ``splats`` of ``model`` (``model(...)["splats"]`` or ``static_splats(...)["splats"]``) into the cameras
+    ``viewmats`` [B, 4, 4], ``ks`` [B, 3, 3] with the low-pass the model was fitted and trained with
+    (``model.splat_lowpass``): every render of a model goes through here, so none draws it with another one."""
+    return _render_uncompiled(*splats, viewmats, ks, width, height, lowpass=model.splat_lowpass)
+
+
 def step_terms(
     model: VCDGSModel,
     data: TrainData,
@@ -437,7 +444,7 @@ def step_terms(
     rasterization call cover the whole batch. -> {name: scalar tensor}; the loss is their sum."""
     w, h = data.size
     out = model(v_idx, t_idx, refine=joint, deform_grad=joint)
-    r = _render_uncompiled(*out["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass)
+    r = render_model(model, out["splats"], vm[v_idx], ks[v_idx], w, h)
     tgt, msk = batch_targets(data, v_idx, t_idx)
     terms = image_loss(r, tgt, msk, perceptual, cfg)
     if data.tracks is not None and cfg.tracks.track_weight > 0:
@@ -775,7 +782,7 @@ def evaluate_image_loss(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, de
                 out = model(v_idx, t_idx, refine=False)
             else:
                 out = static_splats(model, len(t_idx))
-            r = render(*out["splats"], vm[v_idx], ks[v_idx], w, h, lowpass=model.splat_lowpass)
+            r = render_model(model, out["splats"], vm[v_idx], ks[v_idx], w, h)
             tgt = batch_targets(data, v_idx, t_idx)[0].to(dev)
             total += float(F.huber_loss(r["rgb"], tgt, delta=cfg.loss.huber_delta)) * len(t_idx)
             count += len(t_idx)

@@ -129,12 +129,12 @@ void for_each_projected(const torch::Tensor& means, const torch::Tensor& quats, 
   const float *pm = means.data_ptr<float>(), *pq = quats.data_ptr<float>(), *ps = scales.data_ptr<float>();
   const int64_t sm = means.size(0) > 1 ? N : 0, sq = quats.size(0) > 1 ? N : 0, ss = scales.size(0) > 1 ? N : 0;
   const int64_t total = C * N, chunk = 4096;
-  const float fnear = (float)near, flow = (float)lowpass;
+  const float fnear = (float)near, flowpass = (float)lowpass;
   parallel_items((total + chunk - 1) / chunk, at::get_num_threads(), [&](int64_t ci, int) {
     Proj p;
     for (int64_t i = ci * chunk, e = std::min(total, i + chunk); i < e; ++i) {
       const int64_t c = i / N, n = i % N;
-      project_one(cams[c], pm + 3 * (c * sm + n), pq + 4 * (c * sq + n), ps + 3 * (c * ss + n), fnear, flow, p);
+      project_one(cams[c], pm + 3 * (c * sm + n), pq + 4 * (c * sq + n), ps + 3 * (c * ss + n), fnear, flowpass, p);
       fn(i, cams[c], p);
     }
   });

@@ -5,8 +5,9 @@ reference compositor that defines the rules the fast kernel must reproduce bit f
 Rules (identical in every backend, so they agree to float rounding):
 - Projection (EWA): camera-space covariance W R S S^T R^T W^T, pushed through the Jacobian of the
   perspective map at the mean (x/z, y/z clamped to 1.3x the half field of view like 3DGS/gsplat),
-  plus a low-pass dilation on the diagonal (``lowpass`` px^2; 3DGS's and gsplat's 0.3 by default). Pixel (row i, col j) has its centre at
-  (j + 0.5, i + 0.5) in the K convention (OpenCV, principal point W/2 = image centre).
+  plus a low-pass dilation on the diagonal (``lowpass`` px^2; 3DGS's and gsplat's 0.3 by default). Pixel
+  (row i, col j) has its centre at (j + 0.5, i + 0.5) in the K convention (OpenCV, principal point W/2 = image
+  centre).
 - A Gaussian is culled when its camera depth z <= near, its 2D covariance is not positive
   definite, or its opacity is below 1/255.
 - Extent: Gaussian g touches pixel p iff d2 = (p - mu)^T Sigma2d^-1 (p - mu) <= d2max(g) with
