@@ -13,8 +13,9 @@ it means the head motion is not settled when the expression has to be learnt.
 If this misses the expression, no image loss or track term can bring it back with these settings; if it finds it,
 what is lost in a reconstruction is lost in the supervision. ``--no-head-motion`` takes each frame's rigid motion
 out of the truth (and trains without the global SE(3)): the motion model alone. ``--seen-only`` supervises only the
-vertices some training view sees at rest, those tracks can reach: perfect 3D tracks. No expression basis and no
-pick of hidden parts here, so a reconstruction can beat it where those help (a wide mouth). Measurements:
+vertices some training view sees at rest, those tracks can reach: perfect 3D tracks. No pick of hidden parts here,
+and no expression basis unless ``--basis`` (its weights learnt with the rest as a reconstruction learns them, without
+its picks by render), so a reconstruction can beat it where those help (a wide mouth). Measurements:
 docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy").
 """
 
@@ -41,16 +42,29 @@ def main(
     seen_only: bool = typer.Option(
         False, "--seen-only", help="Supervise only the vertices some training view sees at rest (where tracks are)."
     ),
+    basis: bool = typer.Option(
+        False, "--basis", help="Learn the expression basis' weights too, as a reconstruction does (no image picks)."
+    ),
 ) -> None:
     """Train the motion model on the true vertices and print the expression metric of the fit."""
     import torch
 
+    from t2bs.errors import UserError
     from t2bs.eval.bench_vcdgs import load_asset
     from t2bs.geometry.metrics import expression_metrics
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.extract import canonical_vertices
-    from t2bs.recon.vcdgs import _lr_factor, _Schedule, build_model, param_groups, prepare_data, warm_up_steps
+    from t2bs.recon.expression_basis import expression_basis
+    from t2bs.recon.vcdgs import (
+        WARM_UP_GROUPS,
+        _lr_factor,
+        _Schedule,
+        build_model,
+        param_groups,
+        prepare_data,
+        warm_up_steps,
+    )
     from t2bs.render.mesh_renderer import MeshRenderer
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
@@ -72,7 +86,12 @@ def main(
     oracle = float((expression**2).sum(-1).mean()) / diag**2  # the rigid oracle's loss
     data = prepare_data(grid, cfg)
     torch.manual_seed(cfg.runtime.seed)
-    model, _ = build_model(mesh, data, cfg)
+    shapes = None
+    if basis:
+        shapes, info = expression_basis(mesh, cfg.model.expression_shapes)
+        if shapes is None:
+            raise UserError(f"{asset}: no expression basis: {info.get('error')}")
+    model, _ = build_model(mesh, data, cfg, expression_basis=shapes)
     target = torch.as_tensor(truth, dtype=torch.float32)
     weight = torch.ones(target.shape[1])  # [N]: which vertices the loss sees
     if seen_only:
@@ -106,7 +125,7 @@ def main(
             opt.zero_grad(set_to_none=True)
         loss.backward()
         for k, opt in opts.items():
-            if joint or k == "global":
+            if joint or k in WARM_UP_GROUPS:
                 opt.step()
     with torch.no_grad():
         final_loss = float(loss_of(torch.arange(frames)))
@@ -119,6 +138,7 @@ def main(
                 "prompt": prompt,
                 "head_motion": head_motion,
                 "seen_only": seen_only,
+                "basis": [] if shapes is None else list(cfg.model.expression_shapes),
                 "options": set_options,
                 "steps": o.iterations,
                 "warm_up": warm,
