@@ -86,7 +86,7 @@ def main(
     oracle = float((expression**2).sum(-1).mean()) / diag**2  # the rigid oracle's loss
     data = prepare_data(grid, cfg)
     torch.manual_seed(cfg.runtime.seed)
-    shapes = None
+    shapes, info = None, {"shapes": []}
     if basis:
         shapes, info = expression_basis(mesh, cfg.model.expression_shapes)
         if shapes is None:
@@ -138,7 +138,7 @@ def main(
                 "prompt": prompt,
                 "head_motion": head_motion,
                 "seen_only": seen_only,
-                "basis": [] if shapes is None else list(cfg.model.expression_shapes),
+                "basis": info["shapes"],  # the shapes the auto rig made, not the ones asked for
                 "options": set_options,
                 "steps": o.iterations,
                 "warm_up": warm,
