@@ -9,7 +9,16 @@ import trimesh
 from t2bs.eval.bench_vcdgs import full_vs_markdown, markdown, seen_vertices, summarise
 from t2bs.geometry.mesh import vertex_normals
 from t2bs.errors import UserError
-from t2bs.geometry.metrics import expression_metrics, geometry_metrics, moving_mask, normal_consistency, p2p, psnr, ssim
+from t2bs.geometry.metrics import (
+    expression_metrics,
+    geometry_metrics,
+    moving_mask,
+    normal_consistency,
+    p2p,
+    part_errors,
+    psnr,
+    ssim,
+)
 
 
 def cube():
@@ -407,3 +416,33 @@ def test_benchmark_rows_name_the_commit_of_their_code():
         ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
     ).stdout.strip()
     assert got.endswith("+dirty") == bool(dirty)
+
+
+def test_part_errors_split_p2p_moving_by_part():
+    # two separate cubes; the truth moves both by 0.2, the reconstruction gets the first exactly and leaves the second
+    # at rest (error 0.2 on each of its vertices): the second holds the whole error, the oracle (rest) errs on both
+    v, f = cube()
+    rest = np.concatenate([v, v + [3.0, 0.0, 0.0]]).astype(np.float32)
+    faces = np.concatenate([f, f + len(v)])
+    gt = (rest + [0.0, 0.2, 0.0])[None].astype(np.float32)
+    pred = gt.copy()
+    pred[0, len(v) :] = rest[len(v) :]
+    seen = np.zeros(len(rest), bool)
+    seen[:4] = True  # half of the first cube
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    parts = part_errors(pred, gt, rest, faces, seen=seen, oracle=rest[None])
+    assert [p["vertices"] for p in parts] == [8, 8]
+    second, first = parts
+    assert second["share"] == pytest.approx(1.0) and first["share"] == pytest.approx(0.0)
+    assert second["p2p"] == pytest.approx(0.2 / diag, rel=1e-5) and first["p2p"] == pytest.approx(0.0, abs=1e-9)
+    assert second["pairs"] == first["pairs"] == pytest.approx(0.5)
+    assert first["seen"] == pytest.approx(0.5) and second["seen"] == 0.0
+    assert first["oracle_p2p"] == second["oracle_p2p"] == pytest.approx(0.2 / diag, rel=1e-5)
+    # the shares of all parts add up to 1, and p2p moving is their pairs-weighted mean
+    pred[0, :8] += [0.0, 0.0, 0.1]
+    parts = part_errors(pred, gt, rest, faces)
+    assert sum(p["share"] for p in parts) == pytest.approx(1.0)
+    mask = moving_mask(gt, rest)
+    assert sum(p["p2p"] * p["pairs"] for p in parts) == pytest.approx(p2p(pred, gt, diag, mask), rel=1e-6)
+    assert part_errors(rest[None], rest[None], rest, faces) == []  # nothing moves
+    assert len(part_errors(pred, gt, rest, faces, top=1)) == 1

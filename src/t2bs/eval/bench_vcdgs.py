@@ -23,8 +23,9 @@ seconds per reconstruction. Baselines: "static" is the neutral mesh for every fr
 true head motion (its robust rigid fit).
 
 Output: a Markdown table and the JSON ``{"rows": [{asset, prompt, defects, method, expr_p2p,
-expr_rigid, expr_ratio, recovered, cosine, expr_fraction, spurious, expr_ratio_seen, expr_seen_share, expr_seen_pairs, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
-(also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran). The summary holds the mean per (defects, method), the full / static ratio per case,
+expr_rigid, expr_ratio, recovered, cosine, expr_fraction, spurious, expr_ratio_seen, expr_seen_share, expr_seen_pairs, p2p_all, p2p_moving, p2p_seen, seen_fraction, nc, psnr, ssim, seconds, parts[, hidden_pick]}, ...], "summary": {...}, "settings": {...}}``
+(also written to ``--json``, after every case; hidden_pick: what the pick of hidden parts' motion did, where it ran;
+parts: the mesh parts holding the most of p2p moving, geometry.metrics.part_errors, with the rigid oracle's p2p there). The summary holds the mean per (defects, method), the full / static ratio per case,
 and, when ablations ran, full against each of them over the cases both ran (``full_vs``: the paper's ablation
 claim as mean expr_p2p / p2p_moving / p2p_seen / NC and the number of cases where full is lower; also printed as a second
 table). Resume: a re-run with the same ``--json`` file and the same settings
@@ -134,7 +135,7 @@ def run_case(
 ) -> list[dict]:
     import torch
 
-    from t2bs.geometry.metrics import expression_metrics, geometry_metrics, psnr, ssim
+    from t2bs.geometry.metrics import expression_metrics, geometry_metrics, part_errors, psnr, ssim
     from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
     from t2bs.recon.vcdgs import reconstruct_grid
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -148,6 +149,7 @@ def run_case(
         held_cams = [grid.cameras[v] for v in holdout]
         gt_imgs = heldout_images(mesh, gt, held_cams, gcfg.shading, renderer)
         seen = seen_vertices(mesh, gt, [c for v, c in enumerate(grid.cameras) if v not in holdout], renderer)
+        oracle = apply_motion(*robust_rigid_motion(mesh.vertices, gt), mesh.vertices).astype(np.float32)
         rows = []
         for method in methods:
             t0 = time.time()
@@ -157,7 +159,7 @@ def run_case(
                 verts = np.repeat(mesh.vertices[None], grid.num_frames, axis=0)
                 seconds = 0.0
             elif method == "rigid":  # perfect head tracking, neutral face
-                verts = apply_motion(*robust_rigid_motion(mesh.vertices, gt), mesh.vertices).astype(np.float32)
+                verts = oracle
                 seconds = 0.0
             else:
                 over = {
@@ -193,6 +195,8 @@ def run_case(
             expr = expression_metrics(verts, gt, mesh.vertices)
             # the same over the vertices some training view sees: what the images could have recovered
             expr_seen = expression_metrics(verts, gt, mesh.vertices, select=seen)
+            # the parts (teeth, eyeballs, the face) that hold the most of p2p moving, with the rigid oracle's there
+            parts = part_errors(verts, gt, mesh.vertices, mesh.faces, seen=seen, oracle=oracle)
             imgs = heldout_images(mesh, verts, held_cams, gcfg.shading, renderer)
             rows.append(
                 {
@@ -216,6 +220,7 @@ def run_case(
                     "seconds": round(seconds, 2),
                     **extra,
                     **({"hidden_pick": pick} if pick else {}),
+                    "parts": [{k: round(v, 5) if isinstance(v, float) else v for k, v in p.items()} for p in parts],
                 }
             )
             print(_row_line(rows[-1]), flush=True)
