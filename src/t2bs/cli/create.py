@@ -12,7 +12,11 @@ from t2bs.pipeline import CreateConfig, create
 def create_command(
     prompt: str = typer.Argument(..., help='Text describing the character, e.g. "a cartoon fox with big ears".'),
     out: Path = typer.Option(..., "-o", "--out", help="Project folder (created, or resumed if it exists)."),
-    preset: str = typer.Option("quick", help="quick (CPU minutes) or paper (§4.1 settings, GPU)."),
+    preset: str = typer.Option(
+        "quick",
+        help="quick (CPU minutes) or paper (§4.1 settings, GPU; ~11 min a video on an H200, and less accurate than quick"
+        " on a wide mouth: docs/BENCHMARKS.md).",
+    ),
     prompts: str = typer.Option(
         None, help="Expression prompts: all, a comma list, or a prompt-list file (default: the preset's)."
     ),

@@ -16,7 +16,10 @@ def reconstruct_command(
         None, "--videos", help="Video ids to reconstruct (repeat or comma-separate); default all."
     ),
     preset_name: str = typer.Option(
-        "quick", "--preset", help=f"Settings: {' | '.join(PRESETS)} (quick = CPU minutes, paper = GPU, §4.1)."
+        "quick",
+        "--preset",
+        help=f"Settings: {' | '.join(PRESETS)} (quick = CPU minutes, paper = GPU, §4.1: ~11 min a video on an H200, and"
+        " less accurate than quick on a wide mouth).",
     ),
     method: str = typer.Option("full", help=f"Method or ablation: {' | '.join(METHODS)}."),
     iterations: int = typer.Option(0, help="Override the preset's training steps (0 = preset)."),
