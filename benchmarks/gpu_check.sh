@@ -105,8 +105,9 @@ tail -2 /tmp/gpu_check_logs/setup.log
 # (614 s a video, 8.2 ms a joint step, compile 82 s): all 60k steps take ~545 s of budget (tracks, static fit and
 # steps; compiling out) and the whole script ~790 s. Its quality was below the quick preset's (expression / rigid
 # oracle 0.393 vs 0.216, p2p moving 2.7x), and on the CPU the quick preset at 6x its steps (0.297) or at 512 px
-# (0.325) loses too: the paper's schedule and resolution on this case, not the GPU. So next: the other case, smiling, all 60k steps (PAPER_BUDGET=560; PAPER_PROMPT
-# picks another), rows now with `parts` (the mesh parts holding the most of p2p moving, with the rigid oracle's).
+# (0.325) loses too: the paper's schedule and resolution on this case, not the GPU. So next: the other case,
+# smiling, all 60k steps (PAPER_BUDGET=560; PAPER_PROMPT picks another), rows now with `parts` (the mesh parts holding
+# the most of p2p moving, with the rigid oracle's).
 step paper_60k 730 python3 benchmarks/vcdgs.py --asset facecap --defects clean --progress --preset paper --size 512 \
   --time-budget "${PAPER_BUDGET:-560}" --prompts "${PAPER_PROMPT:-smiling}" --methods full,rigid \
   --landmarks facecap=.carry/facecap_landmarks.json --json "$OUT/paper_60k.json"

@@ -128,24 +128,29 @@ def part_errors(
     if not mask.any():
         return []
     label = welded_components(rest, np.asarray(faces))
-    err = np.linalg.norm(pred - gt, axis=-1)
-    total = float(err[mask].sum())
+    at = np.broadcast_to(label, mask.shape)[mask]  # the part of each moving pair
+
+    def per_part(values: np.ndarray | None = None) -> np.ndarray:  # sums over each part's moving pairs
+        return np.bincount(at, weights=None if values is None else values[mask], minlength=label.max() + 1)
+
+    pairs = per_part()
+    err = per_part(np.linalg.norm(pred - gt, axis=-1))
+    seen_pairs = per_part(np.broadcast_to(np.asarray(seen, float), mask.shape)) if seen is not None else None
+    oracle_err = per_part(np.linalg.norm(np.asarray(oracle, np.float64) - gt, axis=-1)) if oracle is not None else None
+    sizes = np.bincount(label)
     out = []
-    for part in np.unique(label):
-        m = mask & (label == part)[None]
-        if not m.any():
-            continue
+    for part in np.flatnonzero(pairs):
         row = {
             "part": int(part),
-            "vertices": int((label == part).sum()),
-            "share": float(err[m].sum() / max(total, 1e-300)),
-            "p2p": float(err[m].mean() / d),
-            "pairs": float(m.sum() / mask.sum()),
+            "vertices": int(sizes[part]),
+            "share": float(err[part] / max(err.sum(), 1e-300)),
+            "p2p": float(err[part] / pairs[part] / d),
+            "pairs": float(pairs[part] / mask.sum()),
         }
-        if seen is not None:
-            row["seen"] = float((m & np.asarray(seen, bool)[None]).sum() / m.sum())
-        if oracle is not None:
-            row["oracle_p2p"] = float(np.linalg.norm(np.asarray(oracle, np.float64) - gt, axis=-1)[m].mean() / d)
+        if seen_pairs is not None:
+            row["seen"] = float(seen_pairs[part] / pairs[part])
+        if oracle_err is not None:
+            row["oracle_p2p"] = float(oracle_err[part] / pairs[part] / d)
         out.append(row)
     return sorted(out, key=lambda r: -r["share"])[:top]
 
