@@ -1,6 +1,7 @@
 """Can the motion model learn an expression at all in the preset's steps (issue 37)? The true 3D vertices, no images.
 
     python3 benchmarks/motion_fit.py ASSET PROMPT [--set KEY=VALUE ...] [--head-motion/--no-head-motion] [--seen-only]
+        [--basis] [--projected [--absolute] [--canonical-model]]
 
 Builds the benchmark's grid of ASSET animated by PROMPT and an untrained VCDGS model as a reconstruction builds it
 (control points, LBS weights, DeformMLP, global SE(3)), then trains it with the reconstruction's schedule (the global
@@ -15,8 +16,13 @@ what is lost in a reconstruction is lost in the supervision. ``--no-head-motion`
 out of the truth (and trains without the global SE(3)): the motion model alone. ``--seen-only`` supervises only the
 vertices some training view sees at rest, those tracks can reach: perfect 3D tracks. No pick of hidden parts here,
 and no expression basis unless ``--basis`` (its weights learnt with the rest as a reconstruction learns them, without
-its picks by render), so a reconstruction can beat it where those help (a wide mouth). Measurements:
-docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy").
+its picks by render), so a reconstruction can beat it where those help (a wide mouth). ``--projected`` supervises
+perfect 2D tracks instead: per sampled (view, time), as training samples them, the squared pixel distance of the
+projected deformed vertices to the truth's, over the vertices that view sees at rest; the model evaluated at that view
+(``--canonical-model``: at the canonical view, one geometry for all views); the motion from frame 0 as the track term
+measures it, or with ``--absolute`` the positions (the motion alone leaves the rest pose free, which images pin).
+``by_views_seeing`` splits the expression error by how many training views see a vertex at rest. Measurements:
+docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy", "From 3D to 2D").
 """
 
 from __future__ import annotations
@@ -45,6 +51,21 @@ def main(
     basis: bool = typer.Option(
         False, "--basis", help="Learn the expression basis' weights too, as a reconstruction does (no image picks)."
     ),
+    projected: bool = typer.Option(
+        False,
+        "--projected",
+        help="Supervise with perfect 2D tracks: each sampled (view, time)'s projected motion from frame 0 of the "
+        "vertices that view sees at rest, the model evaluated at that view (as the track term does).",
+    ),
+    absolute: bool = typer.Option(
+        False, "--absolute", help="With --projected: supervise the projected positions, not the motion from frame 0."
+    ),
+    all_views: bool = typer.Option(
+        False, "--all-views", help="With --projected --absolute: each sample's geometry against every view's tracks."
+    ),
+    canonical_model: bool = typer.Option(
+        False, "--canonical-model", help="With --projected: evaluate the model at the canonical view for every view."
+    ),
 ) -> None:
     """Train the motion model on the true vertices and print the expression metric of the fit."""
     import torch
@@ -69,6 +90,10 @@ def main(
     from t2bs.video.defects import preset as defect_preset
     from t2bs.video.synth import GridConfig, make_grid
 
+    if (absolute or all_views or canonical_model) and not projected:
+        raise UserError("--absolute, --all-views and --canonical-model go with --projected")
+    if all_views and not absolute:
+        raise UserError("--all-views needs --absolute (the motion from frame 0 is measured at each sample's own view)")
     over = {**parse_options(set_options), "static_iters": 0}
     if not head_motion:
         over["method"] = "no_global"
@@ -109,6 +134,36 @@ def main(
         x = model(torch.full_like(t, cv), t, refine=False)["means"]
         return (((x - target[t]) ** 2).sum(-1) * weight).sum() / (weight.sum() * len(t)) / diag**2
 
+    if projected:
+        from t2bs.recon.gaussians import camera_tensors
+        from t2bs.recon.tracks import project_points, rest_visibility
+        from t2bs.recon.vcdgs import _sample
+
+        vm, ks = camera_tensors(data.cameras)
+        seen = torch.as_tensor(rest_visibility(mesh, data.cameras, data.train_views), dtype=torch.float32)  # [V, N]
+        # [V, T, N, 2] the truth's image motion from frame 0 in each view: the perfect tracks
+        truth_px = torch.stack(
+            [project_points(target, vm[v].expand(frames, 4, 4), ks[v].expand(frames, 3, 3)) for v in range(len(vm))]
+        )
+        truth_motion = truth_px - truth_px[:, :1]
+        px = float(ks[cv, 0, 0])  # pixels per unit depth-normalised length, to keep the loss near the 3D one's scale
+
+        def track_loss_of(v: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            mv = torch.full_like(v, cv) if canonical_model else v
+            x = model(mv, t, refine=False)["means"]
+            if all_views:  # each sample's geometry seen by every training view: [B * V] items
+                nviews = len(data.train_views)
+                views = torch.tensor(data.train_views).repeat(len(v))
+                x, t, v = x.repeat_interleave(nviews, 0), t.repeat_interleave(nviews), views
+            if absolute:  # 2D positions: the motion and the rest pose both, as images pin the rest pose
+                err = ((project_points(x, vm[v], ks[v]) - truth_px[v, t]) ** 2).sum(-1) / px**2
+            else:
+                x0 = model(mv, torch.zeros_like(t), refine=False)["means"].detach()
+                moved = project_points(x, vm[v], ks[v]) - project_points(x0, vm[v], ks[v])
+                err = ((moved - truth_motion[v, t]) ** 2).sum(-1) / px**2
+            w = seen[v]  # [B, N]
+            return (err * w).sum() / w.sum().clamp_min(1.0) / diag**2
+
     warm_loss = None
     for step in range(o.iterations):
         p = clock.progress(step)
@@ -119,8 +174,12 @@ def main(
         for k, opt in opts.items():
             for g in opt.param_groups:
                 g["lr"] = groups[k][1] * _lr_factor(k, joint, clock.warm_fraction(p), clock.joint_fraction(p), o)
-        t = torch.randint(0, frames, (o.batch_size,), generator=gen)
-        loss = loss_of(t)
+        if projected:
+            v, t = _sample(gen, data, o.batch_size, o.canonical_fraction)
+            loss = track_loss_of(v, t)
+        else:
+            t = torch.randint(0, frames, (o.batch_size,), generator=gen)
+            loss = loss_of(t)
         for opt in opts.values():
             opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -131,6 +190,18 @@ def main(
         final_loss = float(loss_of(torch.arange(frames)))
         pred = canonical_vertices(model)
     m = expression_metrics(pred, truth, rest)
+    # the expression error by how many training views see a vertex at rest (depth needs two)
+    from t2bs.recon.tracks import rest_visibility as _rest_visibility
+
+    count = _rest_visibility(mesh, data.cameras, data.train_views).sum(0)  # [N]
+    by_views = {}
+    for name, lo, hi in (("0", 0, 0), ("1", 1, 1), ("2-3", 2, 3), ("4+", 4, 10**6)):
+        r = expression_metrics(pred, truth, rest, select=(count >= lo) & (count <= hi))
+        if r["expr_fraction"] > 0:
+            by_views[name] = {
+                "share": round(r["expr_fraction"] / m["expr_fraction"], 3),
+                "expr_ratio": round(float(r["expr_ratio"]), 3),
+            }
     print(
         json.dumps(
             {
@@ -138,6 +209,10 @@ def main(
                 "prompt": prompt,
                 "head_motion": head_motion,
                 "seen_only": seen_only,
+                "projected": projected,
+                "canonical_model": canonical_model,
+                "absolute": absolute,
+                "all_views": all_views,
                 "basis": info["shapes"],  # the shapes the auto rig made, not the ones asked for
                 "options": set_options,
                 "steps": o.iterations,
@@ -145,6 +220,7 @@ def main(
                 "loss_after_warm_up / rigid oracle": None if warm_loss is None else round(warm_loss / oracle, 2),
                 "final_loss / rigid oracle": round(final_loss / oracle, 3),
                 **{name: round(float(m[name]), 3) for name in ("expr_ratio", "recovered", "cosine")},
+                "by_views_seeing": by_views,
             }
         )
     )
