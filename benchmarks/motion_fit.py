@@ -21,7 +21,9 @@ perfect 2D tracks instead: per sampled (view, time), as training samples them, t
 projected deformed vertices to the truth's, over the vertices that view sees at rest; the model evaluated at that view
 (``--canonical-model``: at the canonical view, one geometry for all views); the motion from frame 0 as the track term
 measures it, or with ``--absolute`` the positions (the motion alone leaves the rest pose free, which images pin).
-``by_views_seeing`` splits the expression error by how many training views see a vertex at rest. Measurements:
+``by_views_seeing`` splits the expression error by how many training views see a vertex at rest; ``depth_share`` is the
+share of its square along the canonical camera's axis (over all vertices; over those four or more views see).
+Measurements:
 docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy", "From 3D to 2D").
 """
 
@@ -194,6 +196,15 @@ def main(
     from t2bs.recon.tracks import rest_visibility as _rest_visibility
 
     count = _rest_visibility(mesh, data.cameras, data.train_views).sum(0)  # [N]
+    # the share of the expression error along the canonical camera's axis (depth), over the metric's mask
+    e_fit, e_true = nonrigid_displacements(rest, pred)[0], expression
+    mask = np.linalg.norm(e_true, axis=-1) > 0.005 * diag
+    axis = data.cameras[cv].world_to_camera[2, :3]
+
+    def depth_share(select: np.ndarray) -> float:
+        err = (e_fit - e_true)[mask & select[None]]
+        return round(float(((err @ axis) ** 2).sum() / max((err**2).sum(), 1e-30)), 3)
+
     by_views = {}
     for name, lo, hi in (("0", 0, 0), ("1", 1, 1), ("2-3", 2, 3), ("4+", 4, 10**6)):
         r = expression_metrics(pred, truth, rest, select=(count >= lo) & (count <= hi))
@@ -221,6 +232,8 @@ def main(
                 "final_loss / rigid oracle": round(final_loss / oracle, 3),
                 **{name: round(float(m[name]), 3) for name in ("expr_ratio", "recovered", "cosine")},
                 "by_views_seeing": by_views,
+                # the share of the squared expression error along the canonical camera's axis: all, 4+ views
+                "depth_share": [depth_share(count >= 0), depth_share(count >= 4)],
             }
         )
     )
