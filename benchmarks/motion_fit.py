@@ -1,7 +1,7 @@
 """Can the motion model learn an expression at all in the preset's steps (issue 37)? The true 3D vertices, no images.
 
     python3 benchmarks/motion_fit.py ASSET PROMPT [--set KEY=VALUE ...] [--head-motion/--no-head-motion] [--seen-only]
-        [--basis] [--projected [--absolute] [--canonical-model]]
+        [--basis] [--projected [--absolute [--all-views]] [--canonical-model]]
 
 Builds the benchmark's grid of ASSET animated by PROMPT and an untrained VCDGS model as a reconstruction builds it
 (control points, LBS weights, DeformMLP, global SE(3)), then trains it with the reconstruction's schedule (the global
@@ -20,11 +20,12 @@ its picks by render), so a reconstruction can beat it where those help (a wide m
 perfect 2D tracks instead: per sampled (view, time), as training samples them, the squared pixel distance of the
 projected deformed vertices to the truth's, over the vertices that view sees at rest; the model evaluated at that view
 (``--canonical-model``: at the canonical view, one geometry for all views); the motion from frame 0 as the track term
-measures it, or with ``--absolute`` the positions (the motion alone leaves the rest pose free, which images pin).
+measures it, or with ``--absolute`` the positions (the motion alone leaves the rest pose free, which images pin);
+``--all-views`` (with ``--absolute``) holds each sample's geometry to every training view's projections at its frame.
 ``by_views_seeing`` splits the expression error by how many training views see a vertex at rest; ``depth_share`` is the
 share of its square along the canonical camera's axis (over all vertices; over those four or more views see).
-Measurements:
-docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy", "From 3D to 2D").
+Measurements: docs/VCDGS_NOTES.md ("The head motion's noise swamps a blink", "What perfect tracks would buy",
+"From 3D to 2D").
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ def main(
     from t2bs.geometry.rigid import nonrigid_displacements
     from t2bs.recon.config import parse_options, preset
     from t2bs.recon.extract import canonical_vertices
+    from t2bs.recon.tracks import rest_visibility
     from t2bs.recon.expression_basis import expression_basis
     from t2bs.recon.vcdgs import (
         WARM_UP_GROUPS,
@@ -120,11 +122,10 @@ def main(
             raise UserError(f"{asset}: no expression basis: {info.get('error')}")
     model, _ = build_model(mesh, data, cfg, expression_basis=shapes)
     target = torch.as_tensor(truth, dtype=torch.float32)
+    visible = rest_visibility(mesh, data.cameras, data.train_views)  # [V, N] seen by view v at rest
     weight = torch.ones(target.shape[1])  # [N]: which vertices the loss sees
     if seen_only:
-        from t2bs.recon.tracks import rest_visibility
-
-        weight = torch.as_tensor(rest_visibility(mesh, data.cameras, data.train_views).any(0), dtype=torch.float32)
+        weight = torch.as_tensor(visible.any(0), dtype=torch.float32)
     frames, cv, o = target.shape[0], data.canonical_view, cfg.optim
     groups = param_groups(model, o)  # the refine group gets no gradient here (refine=False): Adam skips it
     opts = {k: torch.optim.Adam(p, lr=lr) for k, (p, lr) in groups.items()}
@@ -138,11 +139,11 @@ def main(
 
     if projected:
         from t2bs.recon.gaussians import camera_tensors
-        from t2bs.recon.tracks import project_points, rest_visibility
+        from t2bs.recon.tracks import project_points
         from t2bs.recon.vcdgs import _sample
 
         vm, ks = camera_tensors(data.cameras)
-        seen = torch.as_tensor(rest_visibility(mesh, data.cameras, data.train_views), dtype=torch.float32)  # [V, N]
+        seen = torch.as_tensor(visible, dtype=torch.float32)  # [V, N]
         # [V, T, N, 2] the truth's image motion from frame 0 in each view: the perfect tracks
         truth_px = torch.stack(
             [project_points(target, vm[v].expand(frames, 4, 4), ks[v].expand(frames, 3, 3)) for v in range(len(vm))]
@@ -192,10 +193,7 @@ def main(
         final_loss = float(loss_of(torch.arange(frames)))
         pred = canonical_vertices(model)
     m = expression_metrics(pred, truth, rest)
-    # the expression error by how many training views see a vertex at rest (depth needs two)
-    from t2bs.recon.tracks import rest_visibility as _rest_visibility
-
-    count = _rest_visibility(mesh, data.cameras, data.train_views).sum(0)  # [N]
+    count = visible.sum(0)  # [N] how many training views see a vertex at rest (depth needs two)
     # the share of the expression error along the canonical camera's axis (depth), over the metric's mask
     e_fit, e_true = nonrigid_displacements(rest, pred)[0], expression
     mask = np.linalg.norm(e_true, axis=-1) > 0.005 * diag
