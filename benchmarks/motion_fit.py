@@ -161,7 +161,8 @@ def main(
             if absolute:  # 2D positions: the motion and the rest pose both, as images pin the rest pose
                 err = ((project_points(x, vm[v], ks[v]) - truth_px[v, t]) ** 2).sum(-1) / px**2
             else:
-                x0 = model(mv, torch.zeros_like(t), refine=False)["means"].detach()
+                with torch.no_grad():  # the start of the motion, a constant of the step (no graph to build)
+                    x0 = model(mv, torch.zeros_like(t), refine=False)["means"]
                 moved = project_points(x, vm[v], ks[v]) - project_points(x0, vm[v], ks[v])
                 err = ((moved - truth_motion[v, t]) ** 2).sum(-1) / px**2
             w = seen[v]  # [B, N]
