@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import roma
 import torch
 
@@ -10,7 +11,7 @@ from t2bs.geometry.camera import orbit_cameras
 from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
 from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
 from t2bs.recon.hidden_parts import (
-    GROUPS,
+    GROUPINGS,
     Opening,
     cluster_motions,
     compare_views,
@@ -131,14 +132,70 @@ def test_parts_group_by_where_they_lie_across_the_opening():
     rest = np.concatenate(
         [
             np.stack([np.zeros_like(v), v, np.zeros_like(v)], 1)
-            for v in (0.1 + y, -0.1 - y, 2 * y - 1.0, 1.2 * y - 0.3, 0.2 + y)
+            for v in (0.1 + y, -0.1 - y, 2 * y - 1.0, 1.2 * y - 0.3, 0.2 + y, 0.5 * y - 0.4)
         ]
     )
-    parts = [np.arange(11 * k, 11 * k + 11) for k in range(5)]
-    groups = group_parts(rest, parts, opening)
-    # wholly on the normal's side (0 and 4), wholly on the other (1), across evenly (2), across mostly on one side (3)
-    assert groups == [[0, 4], [1], [2], [3]] and len(GROUPS) == 4
+    parts = [np.arange(11 * k, 11 * k + 11) for k in range(6)]
+    # by share: wholly on the normal's side (0 and 4), wholly on the other (1), across evenly (2), across mostly on
+    # one side (3: 0.3 past the plane, 0.9 on its side; 5: 0.1 past it, 0.4 on its side)
+    assert group_parts(rest, parts, opening) == [[0, 4], [1], [2], [3, 5]] and len(GROUPINGS["share"]) == 4
+    # by centroid: the parts across but not evenly go by their centroid's side
+    assert group_parts(rest, parts, opening, rule="centroid") == [[0, 3, 4], [1, 5], [2]]
     assert group_parts(rest, parts[:2], opening) == [[0], [1]]  # empty groups are dropped
+    # "evenly": the shorter reach past the plane against the longer, 0.3 / 0.9 for part 3
+    assert group_parts(rest, parts[3:5], opening, even=0.3, rule="centroid") == [[1], [0]]
+    with pytest.raises(ValueError, match="unknown rule"):
+        group_parts(rest, parts, opening, rule="nearest")
+
+
+def test_teeth_that_overlap_the_slit_group_by_their_row_by_centroid():
+    """Facecap's bite in miniature: upper teeth whose tips reach below the lips' line, lower teeth whose backs reach
+    above it. By share both rows land in one leftover group that no single motion fits; by centroid each row is
+    one group (the pick tries both and keeps the one that renders closer to the images)."""
+    opening = Opening(np.zeros(3), np.array([0.0, -1.0, 0.0]), pairs=1, frame=1)  # the jaw moves down: -y
+    y = np.linspace(0.0, 1.0, 21)
+    upper = [np.stack([np.full_like(y, x), 0.15 - 0.2 * y, np.zeros_like(y)], 1) for x in (0.0, 0.3)]  # tips at -0.05
+    lower = [np.stack([np.full_like(y, x), -0.15 + 0.2 * y, np.full_like(y, -0.1)], 1) for x in (0.0, 0.3)]
+    rest = np.concatenate(upper + lower)
+    parts = [np.arange(21 * k, 21 * k + 21) for k in range(4)]
+    assert group_parts(rest, parts, opening) == [[0, 1, 2, 3]]  # all "across, mostly one side"
+    assert group_parts(rest, parts, opening, rule="centroid") == [[2, 3], [0, 1]]  # the lower row on the moving side
+
+
+def test_pick_keeps_the_grouping_whose_motions_render_closer(mesh_renderer):
+    """Two hidden parts that both overlap the slit: "upper" (its centroid above, its lower row below; stays with the
+    head) and "lower" (centroid below, top row above; drops with the jaw). By share they form one group, which no
+    single motion fits; by centroid each goes with its side. The reconstruction has both wrong (upper drops with the
+    jaw, lower stays); the pick runs both groupings, keeps the centroid one (lower loss) and puts both right."""
+    parts = [
+        ("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
+        ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
+        ("upper", quad(-0.1, 0.1, -0.03, 0.09, 0.0, (0.9, 0.1, 0.1), n=4)),  # rows at y -0.03, 0.01, 0.05, 0.09
+        ("lower", quad(0.12, 0.25, -0.13, 0.02, 0.0, (0.1, 0.8, 0.1), n=4)),  # rows at y -0.13, -0.08, -0.03, 0.02
+    ]
+    mesh = merge_meshes(parts)
+    sizes = np.cumsum([0] + [p.num_vertices for _, p in parts])
+    idx = {name: np.arange(sizes[i], sizes[i + 1]) for i, (name, _) in enumerate(parts)}
+    drop = np.linspace(0.0, 1.0, FRAMES)[:, None, None] * np.array([0.0, DROP, 0.0], np.float32)
+    true = np.repeat(mesh.vertices[None], FRAMES, 0).astype(np.float32)
+    true[:, idx["jaw"]] -= drop
+    true[:, idx["lower"]] -= drop
+    recon = true.copy()
+    recon[:, idx["upper"]] -= drop
+    recon[:, idx["lower"]] += drop
+    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
+    images = np.stack([[mesh_renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    assert not seen[idx["upper"]].any() and not seen[idx["lower"]].any()
+    args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))
+    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    assert report.opening is not None and report.grouping == "centroid"
+    assert set(report.grouping_losses) == set(GROUPINGS)
+    assert report.grouping_losses["centroid"] < report.grouping_losses["share"]
+    assert len(group_parts(mesh.vertices, report.parts, report.opening)) == 1  # by share: one group for both
+    assert report.loss_after == report.grouping_losses["centroid"]
+    for name in ("upper", "lower"):
+        assert np.abs(out[:, idx[name]] - true[:, idx[name]]).max() < 1e-5, name
 
 
 def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
@@ -162,6 +219,7 @@ def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
         renderer=mesh_renderer,
     )
     assert [len(p) for p in report.parts] == [16, 16] and len(report.groups) == 2  # one part on each side
+    assert list(report.grouping_losses) == ["share"]  # both rules group them alike: one descent
     red = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["red"])][0]
     assert report.observable[red]
     # The red part now stays with the head, as in the images. The green one keeps its (wrong) motion: it

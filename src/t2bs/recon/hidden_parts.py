@@ -17,11 +17,17 @@ fills the opening where the images show the lower teeth (the reconstructed upper
 low and covers the upper teeth the images show), so a part-by-part pick lowers the image loss while
 moving the teeth wrongly. The groups come from the opening that reveals the parts: pairs of seen
 vertices that touch at rest and move apart (the lips) give a plane through the slit, with the
-normal along their separation, and each hidden part goes by where it lies: wholly on one side,
-wholly on the other, across it evenly (a mouth bag, whose floor and roof move apart), or across it
-but mostly on one side (upper teeth reaching below the lips' line). A group takes one motion for
-all its parts, by coordinate descent over the groups. Where nothing opens, no render can tell
-their motions apart: with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``, on by
+normal along their separation, and each hidden part goes by where it lies. Two rules group them
+(``GROUPINGS``): by share, wholly on one side, wholly on the other, across evenly (a mouth bag, whose
+floor and roof move apart) or across but mostly on one side (upper teeth reaching below the lips'
+line); by centroid, across evenly, else the side its centroid lies on. Neither is right on every
+mouth: teeth overlap the slit, so the share rule can leave upper and lower teeth in one leftover
+group that no single motion fits (facecap's wide mouth), while the centroid rule extrapolates a
+tilted slit plane deep into the mouth and puts back upper teeth with the lower row (facecap's tongue,
+whose protruding tongue tilts the lips' separation forward). A group takes one motion for all its
+parts, by coordinate descent over the groups, once per rule; the rule whose pick renders closer to
+the images is kept (a grouping that mixes the rows cannot reach as low a loss). Where nothing
+opens, no render can tell their motions apart: with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``, on by
 default) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
 head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
 drags them along while they should follow the skull; without it nothing moves.
@@ -54,7 +60,9 @@ class HiddenPick:
     """What ``pick_hidden_motions`` did: which parts, how they were grouped, which motion each group got."""
 
     parts: list[np.ndarray] = field(default_factory=list)  # vertex indices of each hidden part
-    groups: list[list[int]] = field(default_factory=list)  # part indices of each group (GROUPS order, empty dropped)
+    groups: list[list[int]] = field(default_factory=list)  # part indices of each group of the kept rule, in order
+    grouping: str = ""  # the kept rule (GROUPINGS): its pick's render loss was the lowest
+    grouping_losses: dict = field(default_factory=dict)  # rule -> mean L1 after its pick (rules grouping alike: one)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
     observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
     opening: Opening | None = (
@@ -64,13 +72,15 @@ class HiddenPick:
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
-    sweeps: int = 0  # passes over the groups that ran
+    sweeps: int = 0  # passes over the groups that ran (the kept rule's)
     seconds: float = 0.0
 
     def summary(self) -> dict:
         return {
             "hidden_parts": len(self.parts),
             "groups": [len(g) for g in self.groups],
+            "grouping": self.grouping,
+            "grouping_losses": {k: round(v, 6) for k, v in self.grouping_losses.items()},
             "opening_pairs": self.opening.pairs if self.opening else 0,
             "observable": int(sum(self.observable)),
             "closed_rigid": self.closed_rigid,
@@ -215,32 +225,41 @@ def find_opening(
     return Opening(0.5 * (rest[i] + rest[j]).mean(0), normal, len(largest), frame)
 
 
-# Where a hidden part lies relative to the opening's plane (``group_parts``), in this order; the moving side is
-# the one the normal points to.
-GROUPS = ("moving side", "other side", "across, evenly", "across, mostly one side")
+# The grouping rules (``group_parts``) and, for each, where a hidden part may lie relative to the opening's plane,
+# in this order; the moving side is the one the normal points to.
+GROUPINGS = {
+    "share": ("moving side", "other side", "across, evenly", "across, mostly one side"),
+    "centroid": ("moving side", "other side", "across, evenly"),
+}
 
 
 def group_parts(
-    rest: np.ndarray, parts: list[np.ndarray], opening: Opening, side_fraction: float = 0.9, even: float = 0.7
+    rest: np.ndarray,
+    parts: list[np.ndarray],
+    opening: Opening,
+    side_fraction: float = 0.9,
+    even: float = 0.7,
+    rule: str = "share",
 ) -> list[list[int]]:
-    """Part indices of each group in GROUPS (empty groups dropped): a part with at least ``side_fraction``
-    of its vertices on one side of ``opening``'s plane lies on that side; one across it lies across
-    evenly when the shorter of its two reaches past the plane is at least ``even`` of the longer."""
+    """Part indices of each group in ``GROUPINGS[rule]`` (empty groups dropped). ``rule="share"``: a part with
+    at least ``side_fraction`` of its vertices on one side of ``opening``'s plane lies on that side; one across
+    it lies across evenly when the shorter of its two reaches past the plane is at least ``even`` of the
+    longer, else across mostly on one side. ``rule="centroid"``: across evenly as before, else on the side of
+    its mean signed distance (``side_fraction`` unused)."""
+    if rule not in GROUPINGS:
+        raise ValueError(f"group_parts: unknown rule {rule!r}; use one of {', '.join(GROUPINGS)}")
     label = []
     for ix in parts:
         s = (rest[ix] - opening.point) @ opening.normal
         above = float((s > 0).mean())
         reach = sorted([max(float(s.max()), 0.0), max(float(-s.min()), 0.0)])
-        label.append(
-            0
-            if above >= side_fraction
-            else 1
-            if above <= 1 - side_fraction
-            else 2
-            if reach[0] >= even * reach[1]
-            else 3
-        )
-    return [g for g in ([p for p, lab in enumerate(label) if lab == k] for k in range(len(GROUPS))) if g]
+        evenly = reach[0] >= even * reach[1]
+        if rule == "centroid":
+            label.append(2 if evenly else 0 if float(s.mean()) > 0 else 1)
+        else:
+            label.append(0 if above >= side_fraction else 1 if above <= 1 - side_fraction else 2 if evenly else 3)
+    groups = ([p for p, lab in enumerate(label) if lab == k] for k in range(len(GROUPINGS[rule])))
+    return [g for g in groups if g]
 
 
 def pick_hidden_motions(
@@ -268,7 +287,8 @@ def pick_hidden_motions(
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
     moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
     seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping
-    rule's thresholds (``group_parts``). Returns (vertices, HiddenPick)."""
+    rules' thresholds (``group_parts``); the descent runs once per rule in ``GROUPINGS`` (from the parts' own
+    motion each time) and the rule whose pick has the lower render loss is kept. Returns (vertices, HiddenPick)."""
     import time
 
     from t2bs.render.mesh_renderer import MeshRenderer
@@ -287,7 +307,6 @@ def pick_hidden_motions(
     if not len(rots):
         report.seconds = time.time() - t0
         return out, report
-    report.groups = group_parts(mesh.vertices, report.parts, report.opening, side_fraction, even)
     own = renderer is None
     r = MeshRenderer() if own else renderer
     try:
@@ -300,24 +319,38 @@ def pick_hidden_motions(
                 trial[:, ix] = vertices[:, ix] if c < 0 else apply_motion(rots[c], trans[c], mesh.vertices[ix])
             return trial
 
+        def descend(groups: list[list[int]], start: np.ndarray, base: np.ndarray) -> tuple:
+            """Coordinate descent over ``groups`` from ``start`` (render losses ``base``) -> (vertices, losses,
+            choice per group, observable per group, sweeps run)."""
+            choice, observable, done = [-1] * len(groups), [False] * len(groups), 0
+            for sweep in range(sweeps):
+                changed = False
+                for g, group in enumerate(groups):
+                    for c in range(-1, len(rots)):
+                        if c == choice[g]:
+                            continue
+                        trial = moved(start, group, c)
+                        trial_losses = render_losses(r, mesh, trial, images, cameras, views, frames, shading)
+                        observable[g] = observable[g] or bool(np.any(trial_losses != base))
+                        if trial_losses.mean() < base.mean():  # strictly lower: ties keep the current option
+                            choice[g], base, start, changed = c, trial_losses, trial, True
+                done = sweep + 1
+                if not changed:
+                    break
+            return start, base, choice, observable, done
+
         base = render_losses(r, mesh, out, images, cameras, views, frames, shading)
         report.loss_before = float(base.mean())
-        choice = [-1] * len(report.groups)
-        report.observable = [False] * len(report.groups)
-        for sweep in range(sweeps):
-            changed = False
-            for g, group in enumerate(report.groups):
-                for c in range(-1, len(rots)):
-                    if c == choice[g]:
-                        continue
-                    trial = moved(out, group, c)
-                    trial_losses = render_losses(r, mesh, trial, images, cameras, views, frames, shading)
-                    report.observable[g] = report.observable[g] or bool(np.any(trial_losses != base))
-                    if trial_losses.mean() < base.mean():  # strictly lower: ties keep the current option
-                        choice[g], base, out, changed = c, trial_losses, trial, True
-            report.sweeps = sweep + 1
-            if not changed:
-                break
+        best = None
+        for rule in GROUPINGS:
+            groups = group_parts(mesh.vertices, report.parts, report.opening, side_fraction, even, rule)
+            if best is not None and groups == best[0]:
+                continue  # grouped alike: the same descent
+            picked, losses, choice, observable, done = descend(groups, out, base)
+            report.grouping_losses[rule] = float(losses.mean())
+            if best is None or losses.mean() < best[2].mean():  # strictly lower: ties keep the earlier rule
+                best = (groups, picked, losses, choice, observable, done, rule)
+        report.groups, out, base, choice, report.observable, report.sweeps, report.grouping = best
         for g, group in enumerate(report.groups):
             for p in group:
                 report.picks[p] = choice[g]
