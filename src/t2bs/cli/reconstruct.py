@@ -34,7 +34,7 @@ def reconstruct_command(
     hidden_pick: bool = typer.Option(
         None,
         "--hidden-pick/--no-hidden-pick",
-        help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render in groups by where they lie across the opening that reveals them (recon/hidden_parts.py; where nothing opens, nothing moves; default: the preset's, on).",
+        help="After training, parts no training view sees at rest (teeth, a mouth bag) may take a seen cluster's rigid motion, picked by render in groups by where they lie across the opening that reveals them (two groupings tried, the one whose renders match the images better kept; recon/hidden_parts.py); where nothing opens they take the head's motion. Default: the preset's, on.",
     ),
     device: str = typer.Option("auto", help="auto | cpu | cuda."),
     lpips_weights: str = typer.Option(
