@@ -14,8 +14,9 @@ seen vertices), reports:
 - ``pick_groups``: the pick's own groups (by where the parts lie across the opening), as the oracle groups
   of their parts: a group that mixes oracle groups cannot be moved right as a whole;
 - ``descent``: the pick itself (``pick_hidden_motions``, coordinate descent over its groups, at most
-  ``--sweeps`` passes), from the reconstruction and from a copy whose seen parts are replaced by the true
-  motion (``descent_gt_face``; clusters refitted on it): how far the face's error misleads it.
+  ``--sweeps`` passes, once per grouping rule, the lower render loss kept: ``grouping``,
+  ``grouping_losses_1e5``), from the reconstruction and from a copy whose seen parts are replaced by the
+  true motion (``descent_gt_face``; clusters refitted on it): how far the face's error misleads it.
 The last line printed is one JSON object.
 """
 
@@ -98,6 +99,8 @@ def probe(asset: str, prompt: str, sweeps: int, seed: int, max_groups: int = 3) 
                 "ratio": round(score(picked), 4),
                 "sweeps": report.sweeps,
                 "moved": int(sum(p >= 0 for p in report.picks)),
+                "grouping": report.grouping,  # the rule kept (hidden_parts.GROUPINGS): the lower render loss
+                "grouping_losses_1e5": {k: round(v * 1e5, 2) for k, v in report.grouping_losses.items()},
             }, report.groups
 
         rots, trans = cluster_motions(rest, rec, seen, cfg.hidden_parts.hidden_pick_clusters, seed)
@@ -164,7 +167,8 @@ def main(
         r = result[key]
         print(
             f"{key}: ratio {r['ratio_before']:.4f} -> {r['ratio']:.4f}, loss {r['loss_before_1e5']:.2f} -> "
-            f"{r['loss_1e5']:.2f} in {r['sweeps']} sweeps, {r['moved']} parts moved"
+            f"{r['loss_1e5']:.2f} in {r['sweeps']} sweeps, {r['moved']} parts moved, grouping {r['grouping']} "
+            f"(losses {r['grouping_losses_1e5']})"
         )
     print(json.dumps(result))
 
