@@ -36,20 +36,42 @@ def quad(x0, x1, y0, y1, z, color, n: int = 6) -> Mesh:
     return Mesh(v, faces, vertex_colors=np.tile(np.asarray(color, np.float32), (n * n, 1)))
 
 
+def merged(parts: list[tuple[str, Mesh]]) -> tuple[Mesh, dict[str, np.ndarray]]:
+    """The named parts as one mesh, and each part's vertex indices in it."""
+    mesh = merge_meshes(parts)
+    sizes = np.cumsum([0] + [p.num_vertices for _, p in parts])
+    return mesh, {name: np.arange(sizes[i], sizes[i + 1]) for i, (name, _) in enumerate(parts)}
+
+
+def plates() -> list[tuple[str, Mesh]]:
+    """A grey "head" plate over a blue "jaw" plate, a 0.005 gap apart (separate parts), both at depth 0.1."""
+    return [
+        ("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
+        ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
+    ]
+
+
+def frames_seen(renderer, mesh: Mesh, true: np.ndarray) -> tuple[list, np.ndarray]:
+    """5 cameras over +-30 deg at 64 px and the frames ``true`` [T, N, 3] seen by each: (cameras, images [V, T, H,
+    W, 3])."""
+    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
+    return cameras, np.stack(
+        [[renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras]
+    )
+
+
 def scene():
     """(mesh, true [T, N, 3], recon [T, N, 3], index of each part): a grey "head" plate over a blue "jaw" plate
     (a 0.005 gap apart, so they are separate parts) that drops, a red part behind the jaw plate that stays with the head (seen once the jaw drops) and a green
     one behind the head plate that never shows. The reconstruction got both hidden parts wrong: the red one
     follows the jaw, the green one sinks (still out of sight)."""
-    parts = [
-        ("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
-        ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
-        ("red", quad(-0.1, 0.1, -0.09, -0.04, 0.0, (0.9, 0.1, 0.1), n=4)),
-        ("green", quad(-0.1, 0.1, 0.12, 0.2, 0.0, (0.1, 0.8, 0.1), n=4)),
-    ]
-    mesh = merge_meshes(parts)
-    sizes = np.cumsum([0] + [p.num_vertices for _, p in parts])
-    idx = {name: np.arange(sizes[i], sizes[i + 1]) for i, (name, _) in enumerate(parts)}
+    mesh, idx = merged(
+        plates()
+        + [
+            ("red", quad(-0.1, 0.1, -0.09, -0.04, 0.0, (0.9, 0.1, 0.1), n=4)),
+            ("green", quad(-0.1, 0.1, 0.12, 0.2, 0.0, (0.1, 0.8, 0.1), n=4)),
+        ]
+    )
     s = np.linspace(0.0, 1.0, FRAMES)[:, None, None]
     true = np.repeat(mesh.vertices[None], FRAMES, 0).astype(np.float32)
     true[:, idx["jaw"]] -= s * np.array([0.0, DROP, 0.0], np.float32)
@@ -62,10 +84,7 @@ def scene():
 def scene_images(renderer) -> tuple[list, np.ndarray]:
     """5 cameras over +-30 deg at 64 px and the true frames seen by each: (cameras, images [V, T, H, W, 3])."""
     mesh, true, _, _ = scene()
-    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
-    return cameras, np.stack(
-        [[renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras]
-    )
+    return frames_seen(renderer, mesh, true)
 
 
 def test_components_and_hidden_parts():
@@ -167,15 +186,13 @@ def test_pick_keeps_the_grouping_whose_motions_render_closer(mesh_renderer):
     head) and "lower" (centroid below, top row above; drops with the jaw). By share they form one group, which no
     single motion fits; by centroid each goes with its side. The reconstruction has both wrong (upper drops with the
     jaw, lower stays); the pick runs both groupings, keeps the centroid one (lower loss) and puts both right."""
-    parts = [
-        ("head", quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6))),
-        ("jaw", quad(-0.3, 0.3, -0.3, -0.005, 0.1, (0.2, 0.3, 0.8))),
-        ("upper", quad(-0.1, 0.1, -0.03, 0.09, 0.0, (0.9, 0.1, 0.1), n=4)),  # rows at y -0.03, 0.01, 0.05, 0.09
-        ("lower", quad(0.12, 0.25, -0.13, 0.02, 0.0, (0.1, 0.8, 0.1), n=4)),  # rows at y -0.13, -0.08, -0.03, 0.02
-    ]
-    mesh = merge_meshes(parts)
-    sizes = np.cumsum([0] + [p.num_vertices for _, p in parts])
-    idx = {name: np.arange(sizes[i], sizes[i + 1]) for i, (name, _) in enumerate(parts)}
+    mesh, idx = merged(
+        plates()
+        + [
+            ("upper", quad(-0.1, 0.1, -0.03, 0.09, 0.0, (0.9, 0.1, 0.1), n=4)),  # rows at y -0.03, 0.01, 0.05, 0.09
+            ("lower", quad(0.12, 0.25, -0.13, 0.02, 0.0, (0.1, 0.8, 0.1), n=4)),  # rows at y -0.13, -0.08, -0.03, 0.02
+        ]
+    )
     drop = np.linspace(0.0, 1.0, FRAMES)[:, None, None] * np.array([0.0, DROP, 0.0], np.float32)
     true = np.repeat(mesh.vertices[None], FRAMES, 0).astype(np.float32)
     true[:, idx["jaw"]] -= drop
@@ -183,8 +200,7 @@ def test_pick_keeps_the_grouping_whose_motions_render_closer(mesh_renderer):
     recon = true.copy()
     recon[:, idx["upper"]] -= drop
     recon[:, idx["lower"]] += drop
-    cameras = orbit_cameras(5, size=64, azimuth_range=(-30.0, 30.0))
-    images = np.stack([[mesh_renderer.render(mesh, c, vertices=f, shading="unlit").rgb for f in true] for c in cameras])
+    cameras, images = frames_seen(mesh_renderer, mesh, true)
     seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
     assert not seen[idx["upper"]].any() and not seen[idx["lower"]].any()
     args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))

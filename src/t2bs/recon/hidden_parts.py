@@ -27,10 +27,11 @@ tilted slit plane deep into the mouth and puts back upper teeth with the lower r
 whose protruding tongue tilts the lips' separation forward). A group takes one motion for all its
 parts, by coordinate descent over the groups, once per rule; the rule whose pick renders closer to
 the images is kept (a grouping that mixes the rows cannot reach as low a loss). Where nothing
-opens, no render can tell their motions apart: with ``closed_rigid`` (``config.hidden_parts.hidden_pick_closed_rigid``, on by
-default) every hidden part takes the seen surface's dominant rigid motion (``robust_rigid_motion``: the
-head's), since a smile or a blink deforms the lips around the teeth, whose blend of control points then
-drags them along while they should follow the skull; without it nothing moves.
+opens, no render can tell their motions apart: with ``closed_rigid``
+(``config.hidden_parts.hidden_pick_closed_rigid``, on by default) every hidden part takes the seen
+surface's dominant rigid motion (``robust_rigid_motion``: the head's), since a smile or a blink
+deforms the lips around the teeth, whose blend of control points then drags them along while they
+should follow the skull; without it nothing moves.
 On by default (``config.hidden_parts.hidden_pick``).
 """
 
