@@ -16,9 +16,11 @@ from t2bs.recon.hidden_parts import (
     cluster_motions,
     compare_views,
     find_opening,
+    find_openings,
     group_parts,
     hidden_parts,
     pick_hidden_motions,
+    revealing_openings,
 )
 from t2bs.recon.tracks import rest_visibility
 
@@ -143,6 +145,24 @@ def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
     opening = find_opening(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
     assert opening is not None and np.allclose(opening.normal, [0.0, -1.0, 0.0], atol=1e-6)
     assert 0.0 <= opening.point[0] <= 0.11 and opening.frame == 1 and opening.pairs >= 12
+    # Every slit, the most pairs first, each as long as its pairs' midpoints reach (0.11 and 0.02 along x)
+    both = find_openings(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
+    assert len(both) == 2 and both[0].pairs > both[1].pairs and np.allclose(both[1].normal, [0, 0, 1.0], atol=1e-6)
+    assert abs(both[0].extent - 0.11) < 1e-5 and abs(both[1].extent - 0.02) < 1e-5
+
+
+def test_an_opening_reveals_the_parts_within_its_length():
+    """A part is revealed by the nearest slit that lies within the slit's own length of it; one that no slit reaches
+    is revealed by none (-1): an eye's parting lids do not show the teeth."""
+    mouth = Opening(np.zeros(3), np.array([0.0, -1.0, 0.0]), 10, 1, np.array([[-0.1, 0, 0], [0.1, 0, 0.0]]), 0.2)
+    eye = Opening(np.array([0.0, 1.0, 0]), np.array([0.0, -1.0, 0.0]), 4, 1, np.array([[0.0, 1.0, 0]]), 0.05)
+    tooth = np.array([[0.05, -0.05, -0.1], [0.0, -0.1, -0.1]])  # 0.11 behind the mouth's slit
+    lid = np.array([[0.0, 0.97, -0.02]])  # 0.036 from the eye's
+    far = np.array([[2.0, 0.0, 0.0]])
+    assert revealing_openings(
+        np.concatenate([tooth, lid, far]), [np.arange(2), np.array([2]), np.array([3])], [mouth, eye]
+    ) == [0, 1, -1]
+    assert revealing_openings(tooth, [np.arange(2)], [eye]) == [-1]  # the eye alone does not reach the tooth
 
 
 def test_parts_group_by_where_they_lie_across_the_opening():
@@ -370,3 +390,29 @@ def test_more_sweeps_never_raise_the_loss_and_stop_when_nothing_moves(mesh_rende
     assert r1.sweeps == 1 and r3.sweeps == 2  # the second sweep moves nothing, so the third does not run
     assert r3.loss_after <= r1.loss_after and r3.picks == r1.picks and np.array_equal(more, one)
     assert np.abs(more[:, idx["red"]] - true[:, idx["red"]]).max() < 1e-5
+
+
+def test_a_part_no_opening_reaches_takes_the_head_motion(mesh_renderer):
+    """A small "lid" under the head plate drops (a slit 0.1 long at one corner) while a hidden part behind the
+    head, 0.27 from it, sank in the reconstruction. The lid's slit cannot reveal it: no group of the pick holds it,
+    and it takes the head's motion (still, here) instead of a render-picked one that nothing in the images backs."""
+    head = quad(-0.3, 0.3, 0.0, 0.3, 0.1, (0.6, 0.6, 0.6), n=31)  # 0.02 apart, as the lid's top row
+    lid = quad(0.2, 0.3, -0.06, -0.005, 0.1, (0.2, 0.3, 0.8))
+    mesh, idx = merged([("head", head), ("lid", lid), ("tooth", quad(-0.15, -0.05, 0.1, 0.2, 0.0, (1, 1, 1), n=4))])
+    s = np.linspace(0.0, 1.0, FRAMES)[:, None, None]
+    true = np.repeat(mesh.vertices[None], FRAMES, 0).astype(np.float32)
+    true[:, idx["lid"]] -= s * np.array([0.0, 0.05, 0.0], np.float32)
+    recon = true.copy()
+    recon[:, idx["tooth"]] -= s * np.array([0.0, 0.0, 0.05], np.float32)
+    cameras, images = frames_seen(mesh_renderer, mesh, true)
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    assert not seen[idx["tooth"]].any() and seen[idx["lid"]].all()
+    (slit,) = find_openings(mesh.vertices, recon, seen)
+    assert abs(slit.extent - 0.1) < 1e-6 and slit.distance(mesh.vertices[idx["tooth"]]) > 0.25
+    args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))
+    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    assert report.revealed_by == [-1] and report.opening is None and report.groups == [] and report.closed_rigid
+    assert report.summary()["unrevealed"] == 1 and report.summary()["moved"] == 1
+    assert np.abs(out[:, idx["tooth"]] - true[:, idx["tooth"]]).max() < 1e-5
+    keep = np.setdiff1d(np.arange(mesh.num_vertices), idx["tooth"])
+    assert np.array_equal(out[:, keep], recon[:, keep])

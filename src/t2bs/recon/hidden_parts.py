@@ -26,9 +26,11 @@ group that no single motion fits (facecap's wide mouth), while the centroid rule
 tilted slit plane deep into the mouth and puts back upper teeth with the lower row (facecap's tongue,
 whose protruding tongue tilts the lips' separation forward). A group takes one motion for all its
 parts, by coordinate descent over the groups, once per rule; the rule whose pick renders closer to
-the images is kept (a grouping that mixes the rows cannot reach as low a loss). Where nothing
-opens, no render can tell their motions apart: with ``closed_rigid``
-(``config.hidden_parts.hidden_pick_closed_rigid``, on by default) every hidden part takes the seen
+the images is kept (a grouping that mixes the rows cannot reach as low a loss). An opening reveals only
+what lies within its own length of it (``revealing_openings``): a blink's lids part too, and
+teeth grouped by an eye's slit took a closing lid's turn, unseen inside the head. Where nothing
+opens near a part, no render can tell its motions apart: with ``closed_rigid``
+(``config.hidden_parts.hidden_pick_closed_rigid``, on by default) such a part takes the seen
 surface's dominant rigid motion (``robust_rigid_motion``: the head's), since a smile or a blink
 deforms the lips around the teeth, whose blend of control points then drags them along while they
 should follow the skull; without it nothing moves.
@@ -54,6 +56,14 @@ class Opening:
     normal: np.ndarray  # [3] unit: the pairs' main direction of separation, towards where the side that moves more goes
     pairs: int  # pairs of seen vertices that open
     frame: int  # frame where they are open widest
+    midpoints: np.ndarray | None = None  # [P, 3] the pairs' rest midpoints
+    extent: float = 0.0  # the slit's length: twice the largest distance of a midpoint from ``point``
+
+    def distance(self, points: np.ndarray) -> float:
+        """Smallest distance from ``points`` [M, 3] (rest coordinates) to the slit's midpoints."""
+        from scipy.spatial import cKDTree
+
+        return float(cKDTree(self.midpoints).query(np.asarray(points, np.float64))[0].min())
 
 
 @dataclass
@@ -66,10 +76,11 @@ class HiddenPick:
     grouping_losses: dict = field(default_factory=dict)  # rule -> mean L1 after its pick (rules grouping alike: one)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
     observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
-    opening: Opening | None = (
-        None  # None: nothing opens, so every part keeps its own motion (or, closed_rigid, the head's)
-    )
-    closed_rigid: bool = False  # nothing opens and every part took the seen surface's robust rigid motion
+    opening: Opening | None = None  # the first of ``openings``; None: no opening reveals a part
+    openings: list[Opening] = field(default_factory=list)  # the slits that reveal some part (``revealing_openings``)
+    revealed_by: list[int] = field(default_factory=list)  # per part: its index in find_openings' list, -1 for none
+    # the parts no opening reveals took the seen surface's robust rigid motion (without closed_rigid they keep their own)
+    closed_rigid: bool = False
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
@@ -82,10 +93,13 @@ class HiddenPick:
             "groups": [len(g) for g in self.groups],
             "grouping": self.grouping,
             "grouping_losses": {k: round(v, 6) for k, v in self.grouping_losses.items()},
-            "opening_pairs": self.opening.pairs if self.opening else 0,
+            "opening_pairs": sum(o.pairs for o in self.openings),
+            "openings": len(self.openings),
+            "unrevealed": int(sum(k < 0 for k in self.revealed_by)),
             "observable": int(sum(self.observable)),
             "closed_rigid": self.closed_rigid,
-            "moved": len(self.parts) if self.closed_rigid else int(sum(p >= 0 for p in self.picks)),
+            "moved": int(sum(p >= 0 for p in self.picks))
+            + (int(sum(k < 0 for k in self.revealed_by)) if self.closed_rigid else 0),
             "views": self.views,
             "loss_before": round(self.loss_before, 6),
             "loss_after": round(self.loss_after, 6),
@@ -178,52 +192,78 @@ def render_losses(
     return losses.ravel()
 
 
-def find_opening(
+def find_openings(
     rest: np.ndarray,
     vertices: np.ndarray,
     seen: np.ndarray,
     radius: float = 0.01,
     min_gap: float = 0.01,
     link: float = 0.02,
-) -> Opening | None:
-    """The slit where the seen surface opens, or None: rest [N, 3], vertices [T, N, 3], seen [N] bool.
-    Opening pairs: seen vertices within ``radius`` of each other at rest that move more than ``min_gap``
-    further apart in some frame (all three fractions of the rest bounding-box diagonal); skin that merely
-    stretches does not double its edges, lips that part do. Pairs whose rest midpoints lie within ``link``
-    (or twice the pairs' median spacing, if more) of each other form one slit; where there are several (a
-    mouth and closed eyes that open), the one with the most pairs is taken."""
+) -> list[Opening]:
+    """Every slit where the seen surface opens, the one with the most pairs first (none: an empty list): rest
+    [N, 3], vertices [T, N, 3], seen [N] bool. Opening pairs: seen vertices within ``radius`` of each other at rest
+    that move more than ``min_gap`` further apart in some frame (all three fractions of the rest bounding-box
+    diagonal); skin that merely stretches does not double its edges, lips that part do. Pairs whose rest midpoints
+    lie within ``link`` (or twice the pairs' median spacing, if more) of each other form one slit: a mouth, each
+    closing eye's lids."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     idx = np.flatnonzero(seen)
     diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
     if len(idx) < 2 or diag <= 0:
-        return None
+        return []
     x = rest[idx].astype(np.float64)
     pairs = cKDTree(x).query_pairs(radius * diag, output_type="ndarray")
     if not len(pairs):
-        return None
-    i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
-    grow = np.linalg.norm(vertices[:, i] - vertices[:, j], axis=-1) - np.linalg.norm(
+        return []
+    i_all, j_all = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    grow = np.linalg.norm(vertices[:, i_all] - vertices[:, j_all], axis=-1) - np.linalg.norm(
         x[pairs[:, 0]] - x[pairs[:, 1]], axis=-1
     )
     opens = grow.max(0) > min_gap * diag
     if not opens.any():
-        return None
-    mid = cKDTree(0.5 * (rest[i[opens]] + rest[j[opens]]))
+        return []
+    mid = cKDTree(0.5 * (rest[i_all[opens]] + rest[j_all[opens]]))
     if mid.n > 1:  # on a coarse mesh the pairs along one slit lie further apart: link at twice their usual spacing
         link = max(link, 2.0 * float(np.median(mid.query(mid.data, k=2)[0][:, 1])) / diag)
     _, slit = connected_components(mid.sparse_distance_matrix(mid, link * diag), directed=False)
-    largest = np.flatnonzero(opens)[slit == np.bincount(slit).argmax()]
-    i, j = i[largest], j[largest]
-    frame = int(np.argmax(grow[:, largest].sum(1)))
-    sep = (vertices[frame, i] - vertices[frame, j]) - (rest[i] - rest[j])  # [P, 3], each pair's sign arbitrary
-    normal = np.linalg.eigh(sep.T.astype(np.float64) @ sep)[1][:, -1]  # main axis of the separations
-    # Its sign: towards where the side that moves more goes (down, for a jaw): GROUPS' "moving side".
-    move_i, move_j = vertices[frame, i] - rest[i], vertices[frame, j] - rest[j]
-    mover = np.where((np.linalg.norm(move_i, axis=-1) >= np.linalg.norm(move_j, axis=-1))[:, None], move_i, move_j)
-    normal = normal if float((mover @ normal).sum()) >= 0 else -normal
-    return Opening(0.5 * (rest[i] + rest[j]).mean(0), normal, len(largest), frame)
+    out = []
+    for s in np.argsort(-np.bincount(slit), kind="stable"):
+        members = np.flatnonzero(opens)[slit == s]
+        i, j = i_all[members], j_all[members]
+        frame = int(np.argmax(grow[:, members].sum(1)))
+        sep = (vertices[frame, i] - vertices[frame, j]) - (rest[i] - rest[j])  # [P, 3], each pair's sign arbitrary
+        normal = np.linalg.eigh(sep.T.astype(np.float64) @ sep)[1][:, -1]  # main axis of the separations
+        # Its sign: towards where the side that moves more goes (down, for a jaw): GROUPINGS' "moving side".
+        move_i, move_j = vertices[frame, i] - rest[i], vertices[frame, j] - rest[j]
+        mover = np.where((np.linalg.norm(move_i, axis=-1) >= np.linalg.norm(move_j, axis=-1))[:, None], move_i, move_j)
+        normal = normal if float((mover @ normal).sum()) >= 0 else -normal
+        mids = 0.5 * (rest[i] + rest[j])
+        point = mids.mean(0)
+        extent = 2.0 * float(np.linalg.norm(mids.astype(np.float64) - point, axis=-1).max())
+        out.append(Opening(point, normal, len(members), frame, mids, extent))
+    return out
+
+
+def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, **kwargs) -> Opening | None:
+    """The slit with the most opening pairs (``find_openings``), or None where nothing opens."""
+    found = find_openings(rest, vertices, seen, **kwargs)
+    return found[0] if found else None
+
+
+def revealing_openings(rest: np.ndarray, parts: list[np.ndarray], openings: list[Opening]) -> list[int]:
+    """Per part, the index of the opening that reveals it, or -1: the nearest slit among those that lie within
+    their own length (``Opening.extent``) of the part. Why: an opening shows what lies behind it to about its own
+    width; a blink's parting lids (a cartoon shark's eye, 0.3 of the head away from its teeth) cannot show teeth,
+    and a render-picked motion for them from there moves them unseen inside the head (session 43: the shark's teeth
+    took a closing lid's 58-degree turn, at 5e-7 of the render loss)."""
+    out = []
+    for ix in parts:
+        dist = [o.distance(rest[ix]) for o in openings]
+        near = [k for k, d in enumerate(dist) if d <= openings[k].extent]
+        out.append(min(near, key=lambda k: dist[k]) if near else -1)
+    return out
 
 
 # The grouping rules (``group_parts``) and, for each, where a hidden part may lie relative to the opening's plane,
@@ -286,8 +326,9 @@ def pick_hidden_motions(
     ``views`` x ``frames`` (module docstring). ``seen`` [N] bool: vertices some training view sees
     at rest. ``sweeps``: at most this many passes of coordinate descent over the groups (each group
     takes the option that lowers the render loss most, the others fixed); it stops early when a pass
-    moves nothing. ``closed_rigid``: where nothing opens, every hidden part takes ``robust_rigid_motion`` of the
-    seen vertices instead of keeping its own (False: it keeps its own). ``side_fraction``, ``even``: the grouping
+    moves nothing. ``closed_rigid``: a hidden part no opening reveals (``revealing_openings``; all of them where
+    nothing opens) takes ``robust_rigid_motion`` of the seen vertices instead of keeping its own (False: it keeps its
+    own). Each revealing opening groups the parts it reveals by its own plane. ``side_fraction``, ``even``: the grouping
     rules' thresholds (``group_parts``); the descent runs once per rule in ``GROUPINGS`` (from the parts' own
     motion each time) and the rule whose pick has the lower render loss is kept. Returns (vertices, HiddenPick)."""
     import time
@@ -298,11 +339,16 @@ def pick_hidden_motions(
     out = np.array(vertices, np.float32, copy=True)
     report = HiddenPick(parts=hidden_parts(mesh, seen, min_vertices), views=list(views))
     report.picks = [-1] * len(report.parts)
-    report.opening = find_opening(mesh.vertices, out, seen) if report.parts else None
-    if report.parts and report.opening is None and closed_rigid and seen.sum() >= 3:
+    openings = find_openings(mesh.vertices, out, seen) if report.parts else []
+    report.revealed_by = revealing_openings(mesh.vertices, report.parts, openings)
+    used = sorted({k for k in report.revealed_by if k >= 0})
+    report.openings = [openings[k] for k in used]
+    report.opening = report.openings[0] if report.openings else None
+    closed = [p for p, k in enumerate(report.revealed_by) if k < 0]
+    if closed and closed_rigid and seen.sum() >= 3:
         head_rots, head_trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
-        for ix in report.parts:
-            out[:, ix] = apply_motion(head_rots, head_trans, mesh.vertices[ix])
+        for p in closed:
+            out[:, report.parts[p]] = apply_motion(head_rots, head_trans, mesh.vertices[report.parts[p]])
         report.closed_rigid = True
     rots, trans = cluster_motions(mesh.vertices, out, seen, clusters, seed) if report.opening else ([], [])
     if not len(rots):
@@ -344,7 +390,13 @@ def pick_hidden_motions(
         report.loss_before = float(base.mean())
         best = None
         for rule in GROUPINGS:
-            groups = group_parts(mesh.vertices, report.parts, report.opening, side_fraction, even, rule)
+            groups = []  # each revealing opening's groups, in the parts' own indices
+            for k in used:
+                mine = [p for p, by in enumerate(report.revealed_by) if by == k]
+                local = group_parts(
+                    mesh.vertices, [report.parts[p] for p in mine], openings[k], side_fraction, even, rule
+                )
+                groups += [[mine[q] for q in g] for g in local]
             if best is not None and groups == best[0]:
                 continue  # grouped alike: the same descent
             picked, losses, choice, observable, done = descend(groups, out, base)
