@@ -28,7 +28,7 @@ ASSET = shared_asset("facecap.glb")
 def run(asset: Path = ASSET) -> dict:
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
-    from t2bs.face.arkit import arkit_name, derive_arkit_shapes, summary
+    from t2bs.face.arkit import arkit_name, derive_arkit_shapes, observed_range, summary
     from t2bs.eval.bench_retarget import morph_model
     from t2bs.face.landmarks import detect_landmarks
 
@@ -45,6 +45,7 @@ def run(asset: Path = ASSET) -> dict:
         lm.vertex_ids,
         lm.eyeballs,
         lm.regions.get("mouth", {}).get("width_world"),
+        observed=observed_range(model.capture_weights),
     )
     rows = []
     for name, w in zip(shapes.names, shapes.weights):

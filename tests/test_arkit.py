@@ -6,7 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import asset
-from t2bs.face.arkit import ARKIT_GROUPS, ARKIT_NAMES, arkit_name, derive_arkit_shapes, load_reference
+from t2bs.face.arkit import (
+    ARKIT_GROUPS,
+    ARKIT_NAMES,
+    arkit_name,
+    derive_arkit_shapes,
+    load_reference,
+    observed_range,
+    outside_fraction,
+)
 from t2bs.shared_assets import shared_asset
 
 FACECAP = shared_asset("facecap.glb")
@@ -42,7 +50,7 @@ def facecap():
     return mesh, model, lm
 
 
-def _derive(model, mesh, lm):
+def _derive(model, mesh, lm, observed=None):
     return derive_arkit_shapes(
         model.neutral,
         model.basis,
@@ -51,7 +59,19 @@ def _derive(model, mesh, lm):
         lm.vertex_ids,
         lm.eyeballs,
         lm.regions.get("mouth", {}).get("width_world"),
+        observed=observed,
     )
+
+
+def _blink_and_jaw_model(mesh):
+    """A model of two captures of facecap: both eyes blinking together, and the jaw opening (12 frames each)."""
+    from t2bs.blendshapes.model import build_model
+
+    v0 = mesh.vertices.astype(np.float64)
+    ramp = np.sin(np.linspace(0, np.pi, 12))[:, None, None]
+    both = mesh.morph_targets["eyeBlink_L"] + mesh.morph_targets["eyeBlink_R"]
+    caps = {"blink": v0 + ramp * both, "jaw": v0 + ramp * mesh.morph_targets["jawOpen"]}
+    return build_model(mesh.vertices, {k: v.astype(np.float32) for k, v in caps.items()})
 
 
 def test_derived_shapes_match_facecaps_own(facecap):
@@ -77,19 +97,42 @@ def test_derived_shapes_match_facecaps_own(facecap):
 
 
 def test_a_rig_that_only_blinks_both_eyes_has_no_one_eyed_blink(facecap):
-    from t2bs.blendshapes.model import build_model
-
     mesh, _, lm = facecap
-    v0 = mesh.vertices.astype(np.float64)
-    ramp = np.sin(np.linspace(0, np.pi, 12))[:, None, None]
-    both = mesh.morph_targets["eyeBlink_L"] + mesh.morph_targets["eyeBlink_R"]
-    caps = {"blink": v0 + ramp * both, "jaw": v0 + ramp * mesh.morph_targets["jawOpen"]}
-    model = build_model(mesh.vertices, {k: v.astype(np.float32) for k, v in caps.items()})
-    shapes = _derive(model, mesh, lm)
+    shapes = _derive(_blink_and_jaw_model(mesh), mesh, lm)
     assert "jawOpen" in shapes.names
     for side in ("eyeBlinkLeft", "eyeBlinkRight"):
         r = shapes.report[side]
         assert not r["present"] and "captures cannot express" in r["why"] and r["crosstalk"] > 0.6  # both eyes move
+
+
+def test_shapes_that_run_a_capture_backwards_are_absent(facecap):
+    """Captures that only blink and open the jaw: the landmark solve reaches mouthClose, mouthRollLower and
+    mouthShrugLower by closing the jaw past rest, where no capture went; with the captured range given they are
+    reported absent ("beyond the captures"), jawOpen (inside it) stays."""
+    mesh, _, lm = facecap
+    model = _blink_and_jaw_model(mesh)
+    unchecked = _derive(model, mesh, lm)
+    checked = _derive(model, mesh, lm, observed_range(model.capture_weights))
+    backwards = {"mouthClose", "mouthRollLower", "mouthShrugLower"}
+    assert backwards <= set(unchecked.names) and not backwards & set(checked.names)
+    assert set(checked.names) == set(unchecked.names) - backwards and "jawOpen" in checked.names
+    for name in backwards:
+        r = checked.report[name]
+        assert not r["present"] and r["why"].startswith("beyond the captures") and r["outside"] > 0.99
+    assert checked.report["jawOpen"]["outside"] < 0.01
+
+
+def test_outside_fraction_is_the_share_of_motion_beyond_the_captured_range():
+    basis = np.zeros((2, 3, 3))
+    basis[0, 0, 1] = 1.0  # component 0 moves vertex 0 up
+    basis[1, 1, 0] = 1.0  # component 1 moves vertex 1 sideways
+    observed = np.array([[0.0, -1.0], [2.0, 1.0]])  # component 0 seen in [0, 2], component 1 in [-1, 1]
+    assert outside_fraction(basis, np.array([1.5, 0.5]), observed) == 0.0
+    assert outside_fraction(basis, np.array([-1.0, 0.0]), observed) == 1.0  # all of it backwards
+    assert np.isclose(outside_fraction(basis, np.array([3.0, 0.0]), observed), 1.0 / 3.0)  # 1 of its 3 beyond
+    assert np.isclose(outside_fraction(basis, np.array([1.0, -2.0]), observed), 0.5)  # vertex 1: 1 of 2
+    caps = {"a": np.array([[0.0, 1.0], [2.0, -1.0]]), "b": np.array([[1.0, 0.5]])}
+    assert np.array_equal(observed_range(caps), observed) and observed_range({}) is None
 
 
 def test_report_lists_arkit_shapes_and_how_to_open_the_rig(tmp_path):

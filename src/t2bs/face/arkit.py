@@ -118,6 +118,10 @@ class ArkitConfig:
         0.4  # largest fraction of the achieved motion (norm) outside the target's regions (both eyes for one: ~0.7)
     )
     prior: float = 1e-4  # weight of the PCA prior sum (s_0/s_k)^2 w_k^2, relative to the solve's largest diagonal entry
+    # largest fraction of the shape's largest vertex motion that needs weights outside the captured range
+    # (``outside_fraction``; session 43: <= 0.3 on the shapes that look right or match facecap's own, 0.63-0.99 on
+    # those that push the jaw up into the head or the lids wider than rest; docs/ARKIT.md)
+    max_outside: float = 0.5
 
 
 @dataclass
@@ -194,6 +198,28 @@ def _agreement(target: np.ndarray, achieved: np.ndarray) -> tuple[float, float, 
     return cos, reach, crosstalk
 
 
+def outside_fraction(basis: np.ndarray, weights: np.ndarray, observed: np.ndarray) -> float:
+    """How much of a shape lies beyond what the captures saw: ``basis`` [K, N, 3], the shape's ``weights`` [K],
+    ``observed`` [2, K] each component's lowest and highest captured weight. -> the largest vertex motion of the
+    weights' part outside that range, as a fraction of the shape's own largest vertex motion (0: inside; 1: all
+    of it). A landmark solve may reach its target by running a component backwards (the jaw closing past rest,
+    the lids opening wider than the neutral) where no capture went: such a shape is an extrapolation."""
+    basis = np.asarray(basis, np.float64).reshape(len(basis), -1, 3)
+    w = np.asarray(weights, np.float64)
+    beyond = w - np.clip(w, observed[0], observed[1])
+    peak = float(np.linalg.norm(np.einsum("k,kni->ni", w, basis), axis=-1).max())
+    return float(np.linalg.norm(np.einsum("k,kni->ni", beyond, basis), axis=-1).max()) / max(peak, 1e-30)
+
+
+def observed_range(capture_weights: dict) -> np.ndarray | None:
+    """[2, K] each component's lowest and highest weight over every captured frame (``BlendshapeModel
+    .capture_weights``: video -> [T, K]); None without captures."""
+    if not capture_weights:
+        return None
+    allw = np.concatenate([np.asarray(w, np.float64) for w in capture_weights.values()])
+    return np.stack([allw.min(0), allw.max(0)])
+
+
 def derive_arkit_shapes(
     neutral: np.ndarray,
     basis: np.ndarray,
@@ -204,12 +230,15 @@ def derive_arkit_shapes(
     mouth_width: float | None = None,
     config: ArkitConfig = ArkitConfig(),
     reference: Path = REFERENCE,
+    observed: np.ndarray | None = None,
 ) -> ArkitShapes:
     """The 52 ARKit shapes in a blendshape model's space (``neutral`` [N, 3], ``basis`` [K, N, 3],
     ``singular_values`` [K] of the captures, for the prior).
 
     ``landmark_ids`` [20]: the character's retargeting landmarks (``t2bs landmarks``); ``eyeballs``
-    and ``mouth_width`` as the landmark stage found them (see ``transfer_motion``).
+    and ``mouth_width`` as the landmark stage found them (see ``transfer_motion``). ``observed`` [2, K]: each
+    component's captured weight range (``observed_range``); a shape that needs more than ``config.max_outside`` of
+    its motion beyond it is absent (``outside_fraction``). None: not checked.
     """
     from t2bs.face.solve import RetargetSolver, SolveConfig
     from t2bs.face.transfer import TransferConfig, transfer_motion
@@ -252,10 +281,21 @@ def derive_arkit_shapes(
             "reach": round(reach, 4),
             "crosstalk": round(crosstalk, 4),
         }
-        if cos >= config.min_cosine and reach >= config.min_reach and crosstalk <= config.max_crosstalk:
+        outside = outside_fraction(basis, w, observed) if observed is not None else 0.0
+        if observed is not None:
+            entry["outside"] = round(outside, 4)
+        agrees = cos >= config.min_cosine and reach >= config.min_reach and crosstalk <= config.max_crosstalk
+        if agrees and outside <= config.max_outside:
             names.append(name)
             weights.append(w)
             report[name] = {"present": True, **entry, "why": "derived"}
+        elif agrees:
+            report[name] = {
+                "present": False,
+                **entry,
+                "why": f"beyond the captures: {outside:.0%} of its motion needs weights outside the range the "
+                f"captures saw (at most {config.max_outside:.0%}; e.g. a jaw closing past rest)",
+            }
         else:
             report[name] = {
                 "present": False,
@@ -300,6 +340,7 @@ def project_arkit_shapes(project_root: Path, model, character, config: ArkitConf
         lm.eyeballs,
         lm.regions.get("mouth", {}).get("width_world"),
         config,
+        observed=observed_range(model.capture_weights),
     )
 
 
