@@ -172,7 +172,7 @@ def retarget_target(spec: str, track, weights: dict[str, np.ndarray], renderer=N
     model = morph_model(mesh)
     lm, _ = detect_landmarks(mesh, "parts" if procedural else "motion", model=model, renderer=renderer)
     tr = transfer_motion(track, lm.positions, mouth_width=lm.regions.get("mouth", {}).get("width_world"))
-    solver = RetargetSolver(model.neutral, model.basis, mesh.faces, lm.vertex_ids, lm.eyeballs)
+    solver = RetargetSolver.with_pca_prior(model, mesh.faces, lm.vertex_ids, lm.eyeballs)
     w = solver.solve(tr.targets, tr.eye_openness)
     offsets = model.offsets(w)  # [T, N, 3]
     coef = project_directions(offsets, mesh)

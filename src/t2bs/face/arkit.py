@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from t2bs.errors import UserError
+from t2bs.face.solve import PRIOR_RIDGE
 
 # Apple's names, grouped as a viewer lists them (ARFaceAnchor.BlendShapeLocation).
 ARKIT_GROUPS: dict[str, list[str]] = {
@@ -117,7 +118,9 @@ class ArkitConfig:
     max_crosstalk: float = (
         0.4  # largest fraction of the achieved motion (norm) outside the target's regions (both eyes for one: ~0.7)
     )
-    prior: float = 1e-4  # weight of the PCA prior sum (s_0/s_k)^2 w_k^2, relative to the solve's largest diagonal entry
+    prior: float = (
+        PRIOR_RIDGE  # weight of the PCA prior (face/solve.py), relative to the solve's largest diagonal entry
+    )
     # largest fraction of the shape's largest vertex motion that needs weights outside the captured range
     # (``outside_fraction``; session 43: <= 0.3 on the shapes that look right or match facecap's own, 0.63-0.99 on
     # those that push the jaw up into the head or the lids wider than rest; docs/ARKIT.md)
@@ -240,7 +243,7 @@ def derive_arkit_shapes(
     component's captured weight range (``observed_range``); a shape that needs more than ``config.max_outside`` of
     its motion beyond it is absent (``outside_fraction``). None: not checked.
     """
-    from t2bs.face.solve import RetargetSolver, SolveConfig
+    from t2bs.face.solve import RetargetSolver, SolveConfig, pca_prior
     from t2bs.face.transfer import TransferConfig, transfer_motion
 
     neutral = np.asarray(neutral, np.float64)
@@ -250,9 +253,8 @@ def derive_arkit_shapes(
     char_lm = neutral[ids]  # [20, 3]
     # The reference is exact geometry, not a MediaPipe reading: a shut reference eye is a shut eye.
     tcfg = TransferConfig(closed_ratio=0.0)
-    sv = np.maximum(np.asarray(singular_values, np.float64), 1e-12)
     solver = RetargetSolver(
-        neutral, basis, faces, ids, eyeballs, SolveConfig(ridge=config.prior), prior=(sv[0] / sv) ** 2
+        neutral, basis, faces, ids, eyeballs, SolveConfig(ridge=config.prior), pca_prior(singular_values)
     )
     a_lm = basis[:, ids, :2].reshape(len(basis), -1)  # [K, 40] landmark X, Y motion of each component
     names, weights, report = [], [], {}

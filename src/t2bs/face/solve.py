@@ -14,7 +14,12 @@ The model is linear, ``v(w) = neutral + sum_k w_k B_k``, so every term is solved
   lids close fully); (b) depth (the paper's L_Depth): eyeball vertices may not move towards the
   camera more than their lids do (hinge, handled as an active set: solve, add the violated
   vertices as quadratic penalties, solve again).
-- A tiny ridge keeps components that neither landmarks nor ARAP see at zero.
+- The PCA's own Gaussian prior, ``ridge * sum_k (s_0 / s_k)^2 w_k^2`` (``pca_prior``; ``with_pca_prior``): 40
+  landmark numbers cannot pin 50-100 components, and without it the solve drove components the captures barely used
+  (captured weights within +-0.01) to +-1.6, moving the turtle a median 4.7 % of its diagonal beyond anything its
+  captures did (session 43, `t2bs bench retarget`); among the weight vectors that move the landmarks alike it picks
+  the one the captures make most often. Without it (``prior=None``) a tiny plain ridge keeps components that
+  neither landmarks nor ARAP see at zero.
 
 Warm start: each frame starts its ARAP rotations and eye active set from the previous frame's
 solution, so one or two local/global rounds suffice.
@@ -28,6 +33,21 @@ import numpy as np
 
 from t2bs.geometry.mesh import weld_index, welded_edges
 from t2bs.face.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
+
+
+# The PCA prior's weight, relative to the solve's largest diagonal entry (SolveConfig.ridge with ``pca_prior``): chosen
+# on facecap's ARKit shapes (face/arkit.py: median cosine 0.56 -> 0.72); on `t2bs bench retarget` (session 43; Pearson
+# jaw / left eye / right eye / smile) the turtle 0.929 / 0.870 / 0.922 / 0.851 -> 0.961 / 0.942 / 0.942 / 0.860, the
+# procedural fox 0.944 / 0.952 / 0.961 / 0.923 -> 0.957 / 0.952 / 0.960 / 0.912 (1e-5: 0.960 / 0.868 / 0.856 / 0.858
+# and 0.952 / 0.952 / 0.960 / 0.933).
+PRIOR_RIDGE = 1e-4
+
+
+def pca_prior(singular_values: np.ndarray) -> np.ndarray:
+    """[K] relative ridge per component, (s_0 / s_k)^2 for the captures' singular values [K]: a component the
+    captures use 10x less than the first costs 100x as much."""
+    sv = np.maximum(np.asarray(singular_values, np.float64), 1e-12)
+    return (sv[0] / sv) ** 2
 
 
 @dataclass
@@ -121,6 +141,27 @@ class RetargetSolver:
         self.a_depth = np.concatenate(rows) if rows else np.zeros((0, self.k))
         self._active = np.zeros(len(self.a_depth), bool)
         self._w = np.zeros(self.k)
+
+    @classmethod
+    def with_pca_prior(
+        cls,
+        model,
+        faces: np.ndarray,
+        landmark_ids: np.ndarray,
+        eyeballs: dict | None = None,
+        ridge: float = PRIOR_RIDGE,
+    ) -> "RetargetSolver":
+        """The solver for a blendshape model (``neutral``, ``basis``, ``singular_values``) with the PCA's prior at
+        ``ridge`` (module docstring): what retargeting and the ARKit shapes solve."""
+        return cls(
+            model.neutral,
+            model.basis,
+            faces,
+            landmark_ids,
+            eyeballs,
+            SolveConfig(ridge=ridge),
+            pca_prior(model.singular_values),
+        )
 
     def reset(self) -> None:
         self._active[:] = False

@@ -160,7 +160,7 @@ def _from_video(project: Project, config: RetargetConfig) -> RetargetResult:
         )
     positions = model.neutral[lm.vertex_ids].astype(np.float64)
     tr = transfer_motion(track, positions, mouth_width=lm.regions.get("mouth", {}).get("width_world"))
-    solver = RetargetSolver(model.neutral, model.basis, mesh.faces, lm.vertex_ids, lm.eyeballs)
+    solver = RetargetSolver.with_pca_prior(model, mesh.faces, lm.vertex_ids, lm.eyeballs)
     bar = tqdm(total=len(frames), desc="solving weights", unit="frame")
     weights = solver.solve(tr.targets, tr.eye_openness, progress=lambda d, n: bar.update(d - bar.n))
     bar.close()
