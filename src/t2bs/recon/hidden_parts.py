@@ -79,8 +79,7 @@ class HiddenPick:
     opening: Opening | None = None  # the first of ``openings``; None: no opening reveals a part
     openings: list[Opening] = field(default_factory=list)  # the slits that reveal some part (``revealing_openings``)
     revealed_by: list[int] = field(default_factory=list)  # per part: its index in find_openings' list, -1 for none
-    # the parts no opening reveals took the seen surface's robust rigid motion (without closed_rigid they keep their own)
-    closed_rigid: bool = False
+    closed_rigid: bool = False  # the parts no opening reveals took the seen surface's robust rigid motion
     views: list[int] = field(default_factory=list)  # views the renders were compared at
     loss_before: float = 0.0  # mean L1 image difference with every part's own motion
     loss_after: float = 0.0  # same after the picks
