@@ -200,8 +200,35 @@ def test_the_pca_prior_keeps_the_whole_mesh_near_the_truth(turtle):
         return float(np.linalg.norm(model.neutral + model.offsets(solver.solve(targets, gaps)) - verts, axis=-1).mean())
 
     plain = error(RetargetSolver(model.neutral, model.basis, turtle.faces, lm.vertex_ids, lm.eyeballs))
-    prior = error(RetargetSolver.with_pca_prior(model, turtle.faces, lm.vertex_ids, lm.eyeballs))
+    prior = error(RetargetSolver.with_pca_prior(model, turtle.faces, lm.vertex_ids, lm.eyeballs, bounded=False))
     assert prior < 0.3 * plain and prior < 0.001 * diag
+    # What retargeting solves: the prior and every weight within the range the captures saw (0 included)
+    bounded = RetargetSolver.with_pca_prior(model, turtle.faces, lm.vertex_ids, lm.eyeballs)
+    w = bounded.solve(targets, gaps)
+    lo, hi = bounded.bounds
+    assert (lo <= 0).all() and (hi >= 0).all() and (w >= lo - 1e-9).all() and (w <= hi + 1e-9).all()
+    assert error(bounded) < 0.001 * diag
+
+
+def test_the_bounded_solve_meets_the_box_optimality_conditions():
+    """``_solve_linear`` with bounds: the minimiser of 1/2 w^T H w - r^T w in the box (KKT: zero gradient on the free
+    weights, pointing out of the box on the clamped ones); inside the box it is the plain solve."""
+    from t2bs.face.solve import RetargetSolver
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(12, 8))
+    h, rhs = a.T @ a + 0.1 * np.eye(8), rng.normal(size=8) * 3.0
+    solver = RetargetSolver.__new__(RetargetSolver)
+    solver.bounds = np.array([np.full(8, -0.5), np.full(8, 0.5)])
+    free = np.linalg.solve(h, rhs)
+    assert np.abs(free).max() > 0.5  # the box binds
+    w = solver._solve_linear(h, rhs)
+    grad = h @ w - rhs
+    lo, hi = np.isclose(w, -0.5), np.isclose(w, 0.5)
+    assert (lo | hi).any() and (w >= -0.5 - 1e-9).all() and (w <= 0.5 + 1e-9).all()
+    assert np.abs(grad[~lo & ~hi]).max() < 1e-8 and (grad[lo] > -1e-8).all() and (grad[hi] < 1e-8).all()
+    solver.bounds = np.array([np.full(8, -100.0), np.full(8, 100.0)])
+    assert np.array_equal(solver._solve_linear(h, rhs), free)
 
 
 def test_landmark_errors(tmp_path, turtle):

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from t2bs.errors import UserError
-from t2bs.face.solve import PRIOR_RIDGE
+from t2bs.face.solve import PRIOR_RIDGE, observed_range
 
 # Apple's names, grouped as a viewer lists them (ARFaceAnchor.BlendShapeLocation).
 ARKIT_GROUPS: dict[str, list[str]] = {
@@ -212,15 +212,6 @@ def outside_fraction(basis: np.ndarray, weights: np.ndarray, observed: np.ndarra
     beyond = w - np.clip(w, observed[0], observed[1])
     peak = float(np.linalg.norm(np.einsum("k,kni->ni", w, basis), axis=-1).max())
     return float(np.linalg.norm(np.einsum("k,kni->ni", beyond, basis), axis=-1).max()) / max(peak, 1e-30)
-
-
-def observed_range(capture_weights: dict) -> np.ndarray | None:
-    """[2, K] each component's lowest and highest weight over every captured frame (``BlendshapeModel
-    .capture_weights``: video -> [T, K]); None without captures."""
-    if not capture_weights:
-        return None
-    allw = np.concatenate([np.asarray(w, np.float64) for w in capture_weights.values()])
-    return np.stack([allw.min(0), allw.max(0)])
 
 
 def derive_arkit_shapes(

@@ -20,6 +20,8 @@ The model is linear, ``v(w) = neutral + sum_k w_k B_k``, so every term is solved
   captures did (session 43, `t2bs bench retarget`); among the weight vectors that move the landmarks alike it picks
   the one the captures make most often. Without it (``prior=None``) a tiny plain ridge keeps components that
   neither landmarks nor ARAP see at zero.
+- Bounds (``with_pca_prior``): every weight within the range the captures saw, so that a target no capture made
+  (lips pressed tighter than at rest) is not reached by running a component backwards.
 
 Warm start: each frame starts its ARAP rotations and eye active set from the previous frame's
 solution, so one or two local/global rounds suffice.
@@ -41,6 +43,15 @@ from t2bs.face.face_tracking import EYE_LID_PAIRS, LEFT_EYE, RIGHT_EYE
 # procedural fox 0.944 / 0.952 / 0.961 / 0.923 -> 0.957 / 0.952 / 0.960 / 0.912 (1e-5: 0.960 / 0.868 / 0.856 / 0.858
 # and 0.952 / 0.952 / 0.960 / 0.933).
 PRIOR_RIDGE = 1e-4
+
+
+def observed_range(capture_weights: dict) -> np.ndarray | None:
+    """[2, K] each component's lowest and highest weight over every captured frame (``BlendshapeModel
+    .capture_weights``: video -> [T, K]); None without captures."""
+    if not capture_weights:
+        return None
+    allw = np.concatenate([np.asarray(w, np.float64) for w in capture_weights.values()])
+    return np.stack([allw.min(0), allw.max(0)])
 
 
 def pca_prior(singular_values: np.ndarray) -> np.ndarray:
@@ -72,8 +83,11 @@ class RetargetSolver:
         eyeballs: dict | None = None,
         config: SolveConfig = SolveConfig(),
         prior: np.ndarray | None = None,
+        bounds: np.ndarray | None = None,
     ):
         self.config = config
+        # [2, K] lowest and highest weight per component (None: unbounded); see ``with_pca_prior``
+        self.bounds = None if bounds is None else np.asarray(bounds, np.float64)
         # [K] relative ridge per weight (default 1 = plain Tikhonov); e.g. (s_0 / s_k)^2 makes
         # components the captures rarely use expensive (a Gaussian prior from the PCA).
         self.prior = np.ones(np.asarray(basis).shape[0]) if prior is None else np.asarray(prior, np.float64)
@@ -150,9 +164,16 @@ class RetargetSolver:
         landmark_ids: np.ndarray,
         eyeballs: dict | None = None,
         ridge: float = PRIOR_RIDGE,
+        bounded: bool = True,
     ) -> "RetargetSolver":
-        """The solver for a blendshape model (``neutral``, ``basis``, ``singular_values``) with the PCA's prior at
-        ``ridge`` (module docstring): what retargeting and the ARKit shapes solve."""
+        """The solver retargeting uses for a blendshape model (``neutral``, ``basis``, ``singular_values``,
+        ``capture_weights``): the PCA's prior at ``ridge`` (module docstring) and, with ``bounded``, every weight kept
+        within the range the captures saw (``observed_range``, widened to hold 0, the neutral). Why the bounds: a
+        landmark target the captures never made (lips pressed tighter than at rest) is otherwise reached by running
+        a component backwards (the jaw up into the head); measured on `t2bs bench retarget` (session 43)."""
+        observed = observed_range(model.capture_weights) if bounded else None
+        if observed is not None:
+            observed = np.stack([np.minimum(observed[0], 0.0), np.maximum(observed[1], 0.0)])
         return cls(
             model.neutral,
             model.basis,
@@ -161,7 +182,22 @@ class RetargetSolver:
             eyeballs,
             SolveConfig(ridge=ridge),
             pca_prior(model.singular_values),
+            observed,
         )
+
+    def _solve_linear(self, h: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """argmin_w 1/2 w^T h w - rhs^T w (h symmetric positive definite), within ``bounds`` when set: the
+        unconstrained solution where it lies inside them, else bounded-variable least squares on h's Cholesky factor
+        (1/2 |L^T w - L^-1 rhs|^2 is the same objective up to a constant)."""
+        w = np.linalg.solve(h, rhs)
+        if self.bounds is None or ((w >= self.bounds[0]) & (w <= self.bounds[1])).all():
+            return w
+        from scipy.linalg import solve_triangular
+        from scipy.optimize import lsq_linear
+
+        chol = np.linalg.cholesky(h)  # h = L L^T
+        b = solve_triangular(chol, rhs, lower=True)
+        return lsq_linear(chol.T, b, bounds=(self.bounds[0], self.bounds[1]), method="bvls").x
 
     def reset(self) -> None:
         self._active[:] = False
@@ -214,7 +250,7 @@ class RetargetSolver:
                 if self._active.any() and c.eye_depth_weight > 0:
                     a = self.a_depth[self._active]
                     hd = hd + c.eye_depth_weight * a.T @ a / max(len(self.a_depth), 1)
-                w = np.linalg.solve(hd, g + g_arap)
+                w = self._solve_linear(hd, g + g_arap)
                 if len(self.a_depth) == 0 or c.eye_depth_weight <= 0:
                     break
                 viol = self.a_depth @ w > 0
