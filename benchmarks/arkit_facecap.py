@@ -28,7 +28,8 @@ ASSET = shared_asset("facecap.glb")
 def run(asset: Path = ASSET) -> dict:
     from t2bs.geometry.io import load_mesh
     from t2bs.geometry.mesh import normalize
-    from t2bs.face.arkit import arkit_name, derive_arkit_shapes, observed_range, summary
+    from t2bs.face.arkit import arkit_name, derive_arkit_shapes, summary
+    from t2bs.face.solve import observed_range
     from t2bs.eval.bench_retarget import morph_model
     from t2bs.face.landmarks import detect_landmarks
 

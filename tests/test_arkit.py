@@ -12,9 +12,9 @@ from t2bs.face.arkit import (
     arkit_name,
     derive_arkit_shapes,
     load_reference,
-    observed_range,
     outside_fraction,
 )
+from t2bs.face.solve import observed_range
 from t2bs.shared_assets import shared_asset
 
 FACECAP = shared_asset("facecap.glb")

@@ -15,7 +15,6 @@ from t2bs.recon.hidden_parts import (
     Opening,
     cluster_motions,
     compare_views,
-    find_opening,
     find_openings,
     group_parts,
     hidden_parts,
@@ -121,15 +120,15 @@ def test_opening_is_the_slit_between_plates_that_part():
     mesh, true, _, idx = scene()
     seen = np.zeros(mesh.num_vertices, bool)
     seen[idx["head"]] = seen[idx["jaw"]] = True
-    opening = find_opening(mesh.vertices, true, seen)
+    opening = find_openings(mesh.vertices, true, seen)[0]
     # The pairs across the 0.005 gap: the head plate's bottom row and the jaw plate's top row (6 each).
     assert opening is not None and opening.frame == FRAMES - 1 and 6 <= opening.pairs <= 16
     assert np.allclose(opening.normal, [0.0, -1.0, 0.0], atol=1e-6)  # towards where the jaw goes
     assert abs(opening.point[1] + 0.0025) < 1e-6 and abs(opening.point[2] - 0.1) < 1e-6
     # Nothing opens: rest pose throughout, or a motion that moves both plates together.
-    assert find_opening(mesh.vertices, np.repeat(mesh.vertices[None], FRAMES, 0), seen) is None
-    assert find_opening(mesh.vertices, mesh.vertices[None] + np.array([[[0.0, -DROP, 0.0]]]), seen) is None
-    assert find_opening(mesh.vertices, true, np.zeros(mesh.num_vertices, bool)) is None
+    assert find_openings(mesh.vertices, np.repeat(mesh.vertices[None], FRAMES, 0), seen) == []
+    assert find_openings(mesh.vertices, mesh.vertices[None] + np.array([[[0.0, -DROP, 0.0]]]), seen) == []
+    assert find_openings(mesh.vertices, true, np.zeros(mesh.num_vertices, bool)) == []
 
 
 def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
@@ -142,11 +141,11 @@ def test_of_two_slits_the_opening_is_the_one_with_more_pairs():
     moved = rest.copy()
     moved[12:24, 1] -= 0.5  # the mouth's lower row drops
     moved[24:27, 2] += 0.5  # the eye's front row comes forward (another direction, fewer pairs)
-    opening = find_opening(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
+    both = find_openings(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
+    opening = both[0]
     assert opening is not None and np.allclose(opening.normal, [0.0, -1.0, 0.0], atol=1e-6)
     assert 0.0 <= opening.point[0] <= 0.11 and opening.frame == 1 and opening.pairs >= 12
     # Every slit, the most pairs first, each as long as its pairs' midpoints reach (0.11 and 0.02 along x)
-    both = find_openings(rest, np.stack([rest, moved]), np.ones(len(rest), bool))
     assert len(both) == 2 and both[0].pairs > both[1].pairs and np.allclose(both[1].normal, [0, 0, 1.0], atol=1e-6)
     assert abs(both[0].extent - 0.11) < 1e-5 and abs(both[1].extent - 0.02) < 1e-5
 

@@ -50,7 +50,7 @@ from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
 
 @dataclass
 class Opening:
-    """Where the seen surface opens (``find_opening``): a plane through the slit, in rest coordinates."""
+    """Where the seen surface opens (``find_openings``): a plane through the slit, in rest coordinates."""
 
     point: np.ndarray  # [3] mean of the opening pairs' rest midpoints
     normal: np.ndarray  # [3] unit: the pairs' main direction of separation, towards where the side that moves more goes
@@ -76,7 +76,6 @@ class HiddenPick:
     grouping_losses: dict = field(default_factory=dict)  # rule -> mean L1 after its pick (rules grouping alike: one)
     picks: list[int] = field(default_factory=list)  # per part: -1 own motion, else the cluster index
     observable: list[bool] = field(default_factory=list)  # per group: some candidate changes a rendered pixel
-    opening: Opening | None = None  # the first of ``openings``; None: no opening reveals a part
     openings: list[Opening] = field(default_factory=list)  # the slits that reveal some part (``revealing_openings``)
     revealed_by: list[int] = field(default_factory=list)  # per part: its index in find_openings' list, -1 for none
     closed_rigid: bool = False  # the parts no opening reveals took the seen surface's robust rigid motion
@@ -85,6 +84,11 @@ class HiddenPick:
     loss_after: float = 0.0  # same after the picks
     sweeps: int = 0  # passes over the groups that ran (the kept rule's)
     seconds: float = 0.0
+
+    @property
+    def opening(self) -> Opening | None:
+        """The first of ``openings`` (the most pairs); None: no opening reveals a part."""
+        return self.openings[0] if self.openings else None
 
     def summary(self) -> dict:
         return {
@@ -245,12 +249,6 @@ def find_openings(
     return out
 
 
-def find_opening(rest: np.ndarray, vertices: np.ndarray, seen: np.ndarray, **kwargs) -> Opening | None:
-    """The slit with the most opening pairs (``find_openings``), or None where nothing opens."""
-    found = find_openings(rest, vertices, seen, **kwargs)
-    return found[0] if found else None
-
-
 def revealing_openings(rest: np.ndarray, parts: list[np.ndarray], openings: list[Opening]) -> list[int]:
     """Per part, the index of the opening that reveals it, or -1: the nearest slit among those that lie within
     their own length (``Opening.extent``) of the part. Why: an opening shows what lies behind it to about its own
@@ -342,7 +340,6 @@ def pick_hidden_motions(
     report.revealed_by = revealing_openings(mesh.vertices, report.parts, openings)
     used = sorted({k for k in report.revealed_by if k >= 0})
     report.openings = [openings[k] for k in used]
-    report.opening = report.openings[0] if report.openings else None
     closed = [p for p, k in enumerate(report.revealed_by) if k < 0]
     if closed and closed_rigid and seen.sum() >= 3:
         head_rots, head_trans = robust_rigid_motion(mesh.vertices[seen], out[:, seen])
