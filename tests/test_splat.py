@@ -250,6 +250,36 @@ def test_occlusion_order_independent_of_input_order(kernel):
         assert abs(a["depth"][0, 16, 16, 0].item() - (2.25 - 0.3)) < 0.05  # depth of the front one
 
 
+def test_equal_depths_composite_in_index_order(kernel):
+    """Splats at exactly one depth composite in their index order, as the reference's stable sort puts them: the
+    kernel's radix sort of the depths (session 44) must keep ties in index order, across many ties and depths of
+    both signs' bit patterns."""
+    from t2bs.render.splat.cpu import rasterize_cpu_projected
+    from t2bs.render.splat.reference import Projected, rasterize_reference_projected
+
+    g = torch.Generator().manual_seed(5)
+    c, n, size = 2, 400, 32
+    conic_a = torch.rand(c, n, generator=g) * 0.3 + 0.1
+    proj = Projected(
+        means2d=torch.rand(c, n, 2, generator=g) * size,
+        conics=torch.stack([conic_a, torch.zeros(c, n), conic_a], -1),
+        depths=torch.tensor([1.0, 2.5, 0.5])[torch.randint(0, 3, (c, n), generator=g)],  # three depths, many ties
+        opacities=torch.full((c, n), 0.7),
+        colors=torch.rand(c, n, 3, generator=g),
+        d2max=torch.full((c, n), 9.0),
+        radii=(3.0 / conic_a.sqrt() + 1.0)[..., None].repeat(1, 1, 2),
+        valid=torch.ones(c, n, dtype=torch.bool),
+    )
+    ref = rasterize_reference_projected(proj, size, size)
+    fast = rasterize_cpu_projected(proj, size, size)
+    for r, f in zip(ref, fast):
+        torch.testing.assert_close(f, r, rtol=1e-5, atol=1e-5)
+    flip = Projected(**{k: getattr(proj, k).flip(1) for k in proj.__dataclass_fields__})  # ties now the other way
+    flipped = rasterize_cpu_projected(flip, size, size)
+    assert (flipped[0] - fast[0]).abs().max() > 0.05
+    torch.testing.assert_close(flipped[0], rasterize_reference_projected(flip, size, size)[0], rtol=1e-5, atol=1e-5)
+
+
 def test_background_and_empty_scene(kernel):
     cams = orbit_cameras(views=2, size=24)
     vm, K = _cams(cams)
