@@ -12,13 +12,16 @@ from t2bs.geometry.mesh import Mesh, merge_meshes, welded_components
 from t2bs.geometry.rigid import apply_motion, robust_rigid_motion
 from t2bs.recon.hidden_parts import (
     GROUPINGS,
+    SPANNING,
     Opening,
     cluster_motions,
     compare_views,
     find_openings,
     group_parts,
     hidden_parts,
+    part_sides,
     pick_hidden_motions,
+    render_losses,
     revealing_openings,
 )
 from t2bs.recon.tracks import rest_visibility
@@ -176,14 +179,14 @@ def test_parts_group_by_where_they_lie_across_the_opening():
     parts = [np.arange(11 * k, 11 * k + 11) for k in range(6)]
     # by share: wholly on the normal's side (0 and 4), wholly on the other (1), across evenly (2), across mostly on
     # one side (3: 0.3 past the plane, 0.9 on its side; 5: 0.1 past it, 0.4 on its side)
-    assert group_parts(rest, parts, opening) == [[0, 4], [1], [2], [3, 5]] and len(GROUPINGS["share"]) == 4
+    assert group_parts(part_sides(rest, parts, opening)) == [[0, 4], [1], [2], [3, 5]] and len(GROUPINGS["share"]) == 4
     # by centroid: the parts across but not evenly go by their centroid's side
-    assert group_parts(rest, parts, opening, rule="centroid") == [[0, 3, 4], [1, 5], [2]]
-    assert group_parts(rest, parts[:2], opening) == [[0], [1]]  # empty groups are dropped
+    assert group_parts(part_sides(rest, parts, opening, rule="centroid"), "centroid") == [[0, 3, 4], [1, 5], [2]]
+    assert group_parts(part_sides(rest, parts[:2], opening)) == [[0], [1]]  # empty groups are dropped
     # "evenly": the shorter reach past the plane against the longer, 0.3 / 0.9 for part 3
-    assert group_parts(rest, parts[3:5], opening, even=0.3, rule="centroid") == [[1], [0]]
+    assert group_parts(part_sides(rest, parts[3:5], opening, even=0.3, rule="centroid"), "centroid") == [[1], [0]]
     with pytest.raises(ValueError, match="unknown rule"):
-        group_parts(rest, parts, opening, rule="nearest")
+        part_sides(rest, parts, opening, rule="nearest")
 
 
 def test_teeth_that_overlap_the_slit_group_by_their_row_by_centroid():
@@ -196,8 +199,11 @@ def test_teeth_that_overlap_the_slit_group_by_their_row_by_centroid():
     lower = [np.stack([np.full_like(y, x), -0.15 + 0.2 * y, np.full_like(y, -0.1)], 1) for x in (0.0, 0.3)]
     rest = np.concatenate(upper + lower)
     parts = [np.arange(21 * k, 21 * k + 21) for k in range(4)]
-    assert group_parts(rest, parts, opening) == [[0, 1, 2, 3]]  # all "across, mostly one side"
-    assert group_parts(rest, parts, opening, rule="centroid") == [[2, 3], [0, 1]]  # the lower row on the moving side
+    assert group_parts(part_sides(rest, parts, opening)) == [[0, 1, 2, 3]]  # all "across, mostly one side"
+    assert group_parts(part_sides(rest, parts, opening, rule="centroid"), "centroid") == [
+        [2, 3],
+        [0, 1],
+    ]  # the lower row on the moving side
 
 
 def test_pick_keeps_the_grouping_whose_motions_render_closer(mesh_renderer):
@@ -227,10 +233,57 @@ def test_pick_keeps_the_grouping_whose_motions_render_closer(mesh_renderer):
     assert report.opening is not None and report.grouping == "centroid"
     assert set(report.grouping_losses) == set(GROUPINGS)
     assert report.grouping_losses["centroid"] < report.grouping_losses["share"]
-    assert len(group_parts(mesh.vertices, report.parts, report.opening)) == 1  # by share: one group for both
+    assert (
+        len(group_parts(part_sides(mesh.vertices, report.parts, report.opening))) == 1
+    )  # by share: one group for both
     assert report.loss_after == report.grouping_losses["centroid"]
     for name in ("upper", "lower"):
         assert np.abs(out[:, idx[name]] - true[:, idx[name]]).max() < 1e-5, name
+
+
+def test_a_part_across_the_slit_keeps_its_own_motion(mesh_renderer):
+    """A "bag" behind the slit reaching as far above it as below (a mouth bag: its floor drops with the jaw, its roof
+    stays with the head) is grouped across evenly and keeps its own motion, which can stretch with the opening: no
+    rigid candidate is tried for it, even where one would render closer (here its own motion is wrong: it stays put,
+    and the jaw's drop would show its lower half where the images do). The teeth beside it are still picked."""
+    mesh, idx = merged(
+        plates()
+        + [
+            ("bag", quad(-0.25, -0.05, -0.08, 0.075, 0.0, (0.8, 0.2, 0.2), n=5)),
+            ("lower", quad(0.08, 0.2, -0.12, -0.03, 0.0, (0.1, 0.8, 0.1), n=4)),
+        ]
+    )
+    drop = np.linspace(0.0, 1.0, FRAMES)[:, None, None] * np.array([0.0, DROP, 0.0], np.float32)
+    true = np.repeat(mesh.vertices[None], FRAMES, 0).astype(np.float32)
+    true[:, idx["jaw"]] -= drop
+    true[:, idx["lower"]] -= drop
+    lower_half = idx["bag"][mesh.vertices[idx["bag"], 1] < 0]
+    true[:, lower_half] -= drop
+    recon = true.copy()
+    recon[:, idx["bag"]] = mesh.vertices[idx["bag"]]  # the bag's own motion: none at all
+    recon[:, idx["lower"]] = mesh.vertices[idx["lower"]]  # the lower teeth stay behind too
+    cameras, images = frames_seen(mesh_renderer, mesh, true)
+    seen = rest_visibility(mesh, cameras, list(range(5))).any(0)
+    assert not seen[idx["bag"]].any() and not seen[idx["lower"]].any()
+    args = (mesh, recon, seen, images, cameras, [2, 1, 3], list(range(1, FRAMES)))
+    out, report = pick_hidden_motions(*args, shading="unlit", clusters=2, min_vertices=4, renderer=mesh_renderer)
+    bag = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["bag"])][0]
+    lower = [i for i, p in enumerate(report.parts) if np.array_equal(p, idx["lower"])][0]
+    assert part_sides(mesh.vertices, [idx["bag"]], report.opening)[0] == GROUPINGS["share"].index(SPANNING)
+    assert report.picks[bag] == -1 and np.array_equal(out[:, idx["bag"]], recon[:, idx["bag"]])
+    assert [report.spanning[g] for g, group in enumerate(report.groups) if bag in group] == [True]
+    assert report.summary()["spanning"] == 1
+    assert report.picks[lower] >= 0 and np.abs(out[:, idx["lower"]] - true[:, idx["lower"]]).max() < 1e-5
+    # The jaw's drop for the whole bag would have rendered closer than its own (wrong) motion: the rule, not the
+    # images, kept it.
+    jaw = report.picks[lower]
+    rots, trans = cluster_motions(mesh.vertices, recon, seen, 2, 0)
+    dropped = out.copy()
+    dropped[:, idx["bag"]] = apply_motion(rots[jaw], trans[jaw], mesh.vertices[idx["bag"]])
+    frames = list(range(1, FRAMES))
+    assert render_losses(mesh_renderer, mesh, dropped, images, cameras, [2, 1, 3], frames, "unlit").mean() < (
+        render_losses(mesh_renderer, mesh, out, images, cameras, [2, 1, 3], frames, "unlit").mean()
+    )
 
 
 def test_pick_gives_a_hidden_part_the_motion_the_images_show(mesh_renderer):
