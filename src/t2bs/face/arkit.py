@@ -118,9 +118,7 @@ class ArkitConfig:
     max_crosstalk: float = (
         0.4  # largest fraction of the achieved motion (norm) outside the target's regions (both eyes for one: ~0.7)
     )
-    prior: float = (
-        PRIOR_RIDGE  # weight of the PCA prior (face/solve.py), relative to the solve's largest diagonal entry
-    )
+    prior: float = PRIOR_RIDGE  # the PCA prior's weight (face/solve.py), relative to the largest diagonal entry
     # largest fraction of the shape's largest vertex motion that needs weights outside the captured range
     # (``outside_fraction``; session 43: <= 0.3 on the shapes that look right or match facecap's own, 0.63-0.99 on
     # those that push the jaw up into the head or the lids wider than rest; docs/ARKIT.md)

@@ -381,7 +381,9 @@ def pick_hidden_motions(
             for sweep in range(sweeps):
                 changed = False
                 for g, group in enumerate(groups):
-                    for c in range(-1, len(rots)) if not fixed[g] else ():
+                    if fixed[g]:
+                        continue
+                    for c in range(-1, len(rots)):
                         if c == choice[g]:
                             continue
                         trial = moved(start, group, c)
