@@ -628,3 +628,27 @@ def test_every_render_of_a_model_uses_its_low_pass(monkeypatch):
     trained = len(seen)
     evaluate_image_loss(model, data, cfg)
     assert fitted + 4 <= trained < len(seen) and set(seen) == {0.1}
+
+
+def test_track_refits_run_once_at_each_joint_fraction_and_keep_the_weights(monkeypatch):
+    from t2bs.recon import vcdgs
+
+    mesh, grid, static = _two_frame_sphere()
+    cfg = _ten_step_config(track_refit=(0.0, 0.5))  # joint steps 6-9: at step 6 and step 8
+    calls = []
+    real = vcdgs._refit_tracks
+
+    def spy(model, data, cfg, vm, ks, batch=8):
+        new = real(model, data, cfg, vm, ks, batch)
+        calls.append((data.tracks, new))
+        return new
+
+    monkeypatch.setattr(vcdgs, "_refit_tracks", spy)
+    res = vcdgs.reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
+    assert res.history["track_refits"] == 2 and len(calls) == 2 and res.history["track_refit_s"] >= 0
+    first = calls[0][0]
+    for old, new in calls:
+        assert torch.equal(old.weights, new.weights)  # where a track counts is the first flow's
+        assert new.displacement.shape == first.displacement.shape
+        assert float(new.displacement[:, 0].abs().max()) == 0.0  # frame 0 is the rest pose
+    assert calls[1][0] is calls[0][1]  # the second refit starts from the first's tracks

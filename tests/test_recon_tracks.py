@@ -271,3 +271,44 @@ def test_reconstruction_runs_in_deterministic_mode_on_the_cpu_and_restores_it():
     assert not torch.are_deterministic_algorithms_enabled()
     assert _deterministic_when_tracks_are_made(mesh, grid, cfg.replace(device="cpu"))
     assert not torch.are_deterministic_algorithms_enabled()
+
+
+def test_residual_tracks_add_what_the_render_misses_and_cancel_a_still_offset():
+    from scipy.ndimage import gaussian_filter, shift
+
+    from t2bs.recon.tracks import residual_tracks
+
+    rng = np.random.default_rng(0)
+    texture = gaussian_filter(rng.random((64, 64)), 2.0)
+    texture = (texture - texture.min()) / (texture.max() - texture.min())
+
+    def image(offset):  # the texture moved by ``offset`` (x, y) px, as RGB
+        return np.repeat(shift(texture, (offset[1], offset[0]), order=3, mode="nearest")[..., None], 3, -1)
+
+    model = [np.zeros(2), np.array([1.0, 0.0]), np.array([1.5, -0.5])]  # the model's motion (render)
+    truth = [np.zeros(2), np.array([2.5, -1.0]), np.array([3.0, 1.0])]  # the input's
+    still = np.array([0.6, 0.4])  # render and input disagree at rest too: not motion
+    renders = np.stack([[image(m) for m in model]]).astype(np.float32)  # [1, 3, 64, 64, 3]
+    images = np.stack([[image(g + still) for g in truth]]).astype(np.float32)
+    ys, xs = np.mgrid[20:44:4, 20:44:4]
+    rest = np.stack([xs.ravel(), ys.ravel()], -1).astype(np.float32) + 0.5  # [N, 2] pixel centres
+    projected = np.stack([[rest + m for m in model]]).astype(np.float32)  # [1, 3, N, 2]
+    n = len(rest)
+    old = VertexTracks(torch.zeros(1, 3, n, 2), torch.ones(1, 3, n))
+    old.weights[0, :, 0] = 0.0  # not seen at rest: keeps its (zero) track and weight
+    new = residual_tracks(old, renders, images, projected, [0], fb_px=1.0, blur_px=0.0)
+    assert float(new.weights[0, :, 0].max()) == 0.0 and float(new.displacement[0, :, 0].abs().max()) == 0.0
+    assert float(new.displacement[0, 0].abs().max()) == 0.0  # frame 0 stays the rest pose
+    for t in (1, 2):
+        ok = new.weights[0, t, 1:].numpy() > 0
+        assert ok.mean() > 0.9
+        err = np.linalg.norm(new.displacement[0, t, 1:].numpy()[ok] - truth[t], axis=-1)
+        assert err.mean() < 0.2, (t, err.mean())  # the truth, not the model's motion nor the still offset
+    # a track whose motion beyond the head's is already long keeps the first flow's value
+    old.displacement[0, 1:, 1] = torch.tensor([6.0, 0.0])
+    head = np.zeros((1, 3, n, 2), np.float32)
+    head[0, :, 2] = (6.0, 0.0)  # the head moved vertex 2 as far: its own motion is short
+    old.displacement[0, 1:, 2] = torch.tensor([6.0, 0.0])
+    gated = residual_tracks(old, renders, images, projected, [0], fb_px=1.0, blur_px=0.0, head=head, below_px=3.0)
+    assert torch.equal(gated.displacement[0, :, 1], old.displacement[0, :, 1])
+    assert float(np.linalg.norm(gated.displacement[0, 2, 2].numpy() - truth[2])) < 0.3

@@ -139,6 +139,12 @@ class TrackConfig:
     # Vertices an expression-basis blink shape moves downwards by more than this fraction of its largest motion (the
     # upper lids) get no track term: the flow holds a closing lid back (0 = tracks everywhere)
     track_release_lids: float = 0.1
+    # joint-stage fractions at which the tracks are measured again as the model's motion plus the flow from its render
+    # to the input frame (opt-in: smiles gain, blinks and facecap's wide mouth lose; docs/VCDGS_NOTES.md); () = never
+    track_refit: tuple[float, ...] = ()
+    # only tracks whose non-rigid motion (less the model's head motion) is below this are measured again, fraction of
+    # the image's longer side (2 px at 128): the first flow follows large motion (clean mean 0.423 -> 0.411 with it)
+    track_refit_below: float = 0.016
 
 
 @dataclass
@@ -201,6 +207,7 @@ class VCDGSConfig:
         self.data.holdout_views = tuple(self.data.holdout_views)
         self.model.expression_shapes = tuple(self.model.expression_shapes)
         self.optim.expression_pick = tuple(self.optim.expression_pick)
+        self.tracks.track_refit = tuple(self.tracks.track_refit)
 
     def replace(self, **fields) -> "VCDGSConfig":
         """A copy with ``fields`` changed: any field of the tree by its name (``knn=4``) or ``method``.

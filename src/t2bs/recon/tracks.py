@@ -226,6 +226,71 @@ def compute_tracks(
     return VertexTracks(torch.from_numpy(disp), torch.from_numpy(weights), torch.from_numpy(textured))
 
 
+def residual_tracks(
+    tracks: VertexTracks,
+    renders: np.ndarray,
+    images: np.ndarray,
+    projected: np.ndarray,
+    views: list[int],
+    fb_px: float = 1.0,
+    blur_px: float = 0.7,
+    flow_size: int = 0,
+    workers: int = 0,
+    head: np.ndarray | None = None,
+    below_px: float = 0.0,
+) -> VertexTracks:
+    """``tracks`` measured again against a model: renders [V, T, H, W, 3] of the model and the input ``images`` (the
+    same shape, 0..1), ``projected`` [V, T, N, 2] the model's vertices in each render's pixels. Per (view, time), the
+    flow from the render to the input at a vertex's pixel is what the model still misses there; the new track is the
+    model's own motion from frame 0 plus that residual, less the residual at frame 0 (where render and input differ in
+    appearance, not motion). Why: DIS under-reports small motion (a lip corner's 1-2 px: a gain of 0.3-0.8,
+    benchmarks/track_accuracy.py), and a short flow against a render that has already moved most of the way loses
+    little. Only tracks the first flow found are measured again (a vertex occluded at frame t would take its
+    occluder's residual); a track keeps its old value where either new round trip fails. Weights do not change.
+    ``head`` [V, T, N, 2] (optional): the image motion the model's head motion alone gives; with ``below_px`` > 0 only
+    tracks whose motion beyond it is shorter than ``below_px`` are measured again (the first flow follows large motion
+    well: a wide mouth's lower lip at a gain of ~0.9, where a smile's corners get 0.3-0.8)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    cv2.setNumThreads(1)
+    nv, nt, h, w = images.shape[:4]
+    scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
+    size = (round(w * scale), round(h * scale))
+    to_flow = np.array([size[0] / w, size[1] / h], np.float32)
+    disp = tracks.displacement.cpu().numpy().copy()
+    weights = tracks.weights.cpu().numpy().copy()
+
+    def grey(img: np.ndarray) -> np.ndarray:
+        if scale > 1.0:
+            img = cv2.resize(img, size, interpolation=cv2.INTER_CUBIC)
+        return _grey(img, blur_px * scale)
+
+    def view_residuals(v: int) -> None:
+        dis = _flow_engine()
+        res, ok = [], []
+        for t in range(nt):
+            a, b = grey(renders[v, t]), grey(images[v, t])
+            uv = projected[v, t] * to_flow
+            d = _sample(dis.calc(a, b, None), uv)
+            back = _sample(dis.calc(b, a, None), uv + d)
+            res.append(d / to_flow)
+            ok.append(np.linalg.norm(d + back, axis=-1) < fb_px * scale)
+        for t in range(1, nt):
+            # only where the first flow found the vertex (an occluded one would take its occluder's residual)
+            valid = ok[t] & ok[0] & (weights[v, t] > 0)
+            if head is not None and below_px > 0:  # only small non-rigid motion: the flow tracks large motion
+                valid &= np.linalg.norm(disp[v, t] - head[v, t], axis=-1) < below_px
+            new = projected[v, t] - projected[v, 0] + res[t] - res[0]
+            disp[v, t] = np.where(valid[:, None], new, disp[v, t])
+
+    with ThreadPoolExecutor(max(1, min(len(views), workers or torch.get_num_threads()))) as pool:
+        list(pool.map(view_residuals, views))
+    dev = tracks.displacement.device
+    return VertexTracks(torch.from_numpy(disp).to(dev), torch.from_numpy(weights).to(dev), tracks.textured)
+
+
 def track_loss(
     x_t: torch.Tensor,
     x_0: torch.Tensor,

@@ -584,6 +584,17 @@ def train(
         if joint and model.expression_coef is not None:
             # the clock counts steps only: a pick's seconds move its origin
             started += _pick_due_expression_weights(model, data, cfg, perceptual, opts, history, step, frac)
+        refits = history.get("track_refits", 0)
+        if joint and data.tracks is not None and cfg.tracks.track_refit:
+            # a resumed run measures its tracks again from the resumed model (a checkpoint does not hold them)
+            due = refits < len(cfg.tracks.track_refit) and frac >= cfg.tracks.track_refit[refits]
+            if due or (step == start and refits > 0):
+                began = time.perf_counter()
+                data.tracks = _refit_tracks(model, data, cfg, vm, ks)
+                history["track_refits"] = refits + int(due)
+                spent = time.perf_counter() - began
+                history["track_refit_s"] = round(history.get("track_refit_s", 0.0) + spent, 2)
+                started += spent
         history["steps_run"] = step + 1
         for k, o in opts.items():
             base = groups[k][1]
@@ -745,6 +756,48 @@ def resume_checkpoint(
         discard(f"checkpoint does not fit this model ({type(exc).__name__})")
         return None
     return history, step
+
+
+@torch.no_grad()
+def _refit_tracks(model: VCDGSModel, data: TrainData, cfg: VCDGSConfig, vm, ks, batch: int = 8) -> VertexTracks:
+    """config.tracks.track_refit: every training view and frame rendered as training renders it, and the tracks
+    measured again as the model's motion plus the flow from its render to the input (tracks.residual_tracks)."""
+    from t2bs.recon.tracks import residual_tracks
+
+    w, h = data.size
+    pairs = [(v, t) for v in data.train_views for t in range(data.frames)]
+    renders = np.zeros((data.views, data.frames, h, w, 3), np.float32)
+    projected = np.zeros((data.views, data.frames, len(model.means), 2), np.float32)
+    head = np.zeros_like(projected)
+    rest = _rest_as_seen(model, data.views)
+    was = model.training
+    model.eval()
+    for i in range(0, len(pairs), batch):
+        v_idx = torch.tensor([p[0] for p in pairs[i : i + batch]], device=model.means.device)
+        t_idx = torch.tensor([p[1] for p in pairs[i : i + batch]], device=model.means.device)
+        out = model(v_idx, t_idx, refine=True)
+        r = render_model(model, out["splats"], vm[v_idx], ks[v_idx], w, h)
+        vi, ti = v_idx.cpu().numpy(), t_idx.cpu().numpy()
+        renders[vi, ti] = r["rgb"].clamp(0, 1).cpu().numpy()
+        projected[vi, ti] = project_points(out["means"], vm[v_idx], ks[v_idx]).cpu().numpy()
+        hp = _head_motion_px(model, out, rest[v_idx], vm[v_idx], ks[v_idx], v_idx, t_idx)
+        if hp is not None:
+            head[vi, ti] = hp.cpu().numpy()
+    model.train(was)
+    side = max(data.size)
+    tc = cfg.tracks
+    return residual_tracks(
+        data.tracks,
+        renders,
+        data.images.cpu().numpy(),
+        projected,
+        data.train_views,
+        tc.track_fb * side,
+        tc.track_blur * side,
+        tc.track_flow_size,
+        head=head,
+        below_px=tc.track_refit_below * side,
+    )
 
 
 @torch.no_grad()
