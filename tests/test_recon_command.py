@@ -91,6 +91,10 @@ def test_set_options_are_typed_by_field_and_bad_ones_are_user_errors():
             parse_options(bad)
     with pytest.raises(UserError, match="knn"):  # parsed, then rejected by the config's own check
         preset("quick", **parse_options(["knn=0"]))
+    with pytest.raises(UserError, match="track_refit"):  # joint-stage fractions
+        preset("quick", **parse_options(["track_refit=0.6,1.5"]))
+    assert preset("quick", **parse_options(["track_refit=0.9,0.3"])).tracks.track_refit == (0.3, 0.9)
+    assert preset("quick", **parse_options(["track_refit="])).tracks.track_refit == ()  # --set turns it off
     # CUDA graphs replay the compiled step (back since a lent H200 trained with them: issue 36), so they need it;
     # the paper preset (the GPU's) turns both on
     with pytest.raises(UserError, match="cuda_graphs replays the compiled step: set compile=true with it"):
