@@ -114,6 +114,31 @@ def _flow_engine():
     return dis
 
 
+def _flow_frame(h: int, w: int, flow_size: int) -> tuple[float, tuple[int, int]]:
+    """(scale, (width, height)) of the images the flow runs on: upsampled so that their longer side is at least
+    ``flow_size`` (0 = as given)."""
+    scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
+    return scale, (round(w * scale), round(h * scale))
+
+
+def _flow_grey(img: np.ndarray, size: tuple[int, int], scale: float, blur_px: float) -> np.ndarray:
+    """An RGB image 0..1 as the flow sees it: upsampled (bicubic) to ``size`` when ``scale`` > 1, grey, blurred by
+    ``blur_px`` given pixels."""
+    import cv2
+
+    if scale > 1.0:
+        img = cv2.resize(img, size, interpolation=cv2.INTER_CUBIC)
+    return _grey(img, blur_px * scale)
+
+
+def _round_trip(dis, a: np.ndarray, b: np.ndarray, uv: np.ndarray, tol_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flow a -> b sampled at ``uv`` [N, 2], and whether the b -> a flow brings it back within ``tol_px`` (all in the
+    flow's pixels)."""
+    d = _sample(dis.calc(a, b, None), uv)
+    back = _sample(dis.calc(b, a, None), uv + d)
+    return d, np.linalg.norm(d + back, axis=-1) < tol_px
+
+
 VISIBILITY_SIZE = 1024  # px (longer side) of the rest-pose depth test, whatever the training resolution
 
 
@@ -172,8 +197,7 @@ def compute_tracks(
 
     cv2.setNumThreads(1)  # parallel over views instead: one flow per thread, none fighting torch's
     nv, nt, h, w = images.shape[:4]
-    scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
-    size = (round(w * scale), round(h * scale))
+    scale, size = _flow_frame(h, w, flow_size)
     # per axis, as the resized camera scales them: rounding the size can make x and y differ slightly
     to_given_px = np.array([w / size[0], h / size[1]], np.float32)
     n = mesh.num_vertices
@@ -183,31 +207,22 @@ def compute_tracks(
     verts = mesh.vertices.astype(np.float64)
     visible = rest_visibility(mesh, cameras, views)
 
-    def round_trip(dis, a: np.ndarray, b: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flow a -> b sampled at ``uv`` [N, 2], and whether the b -> a flow brings it back within fb_px."""
-        d = _sample(dis.calc(a, b, None), uv)
-        back = _sample(dis.calc(b, a, None), uv + d)
-        return d, np.linalg.norm(d + back, axis=-1) < fb_px * scale
-
     def view_tracks(v: int) -> None:
         dis = _flow_engine()
         cam = cameras[v].resized(*size) if scale > 1.0 else cameras[v]
         u0 = cam.project(verts)[0].astype(np.float32)  # [N, 2], in the flow's pixels
-        frames = images[v].numpy()
-        if scale > 1.0:
-            frames = [cv2.resize(f, size, interpolation=cv2.INTER_CUBIC) for f in frames]
-        grey = [_grey(f, blur_px * scale) for f in frames]
+        grey = [_flow_grey(f, size, scale, blur_px) for f in images[v].numpy()]
         textured[v] = _sample(texture_strength(grey[0])[..., None], u0)[:, 0] >= min_texture
         start = visible[v]
         weights[v, 0] = start
         u, alive = u0.copy(), start.copy()  # the chained track: current pixel, not yet lost
         rest_grey = _sample(_box3(grey[0]), u0)[:, 0]
         for t in range(1, nt):
-            d, ok = round_trip(dis, grey[0], grey[t], u0)
+            d, ok = _round_trip(dis, grey[0], grey[t], u0, fb_px * scale)
             ok &= start
             if chain:
                 # At t = 1 the chained step is the direct flow itself (same images, same pixels).
-                step, step_ok = (d, ok) if t == 1 else round_trip(dis, grey[t - 1], grey[t], u)
+                step, step_ok = (d, ok) if t == 1 else _round_trip(dis, grey[t - 1], grey[t], u, fb_px * scale)
                 alive &= step_ok
                 u = u + step
                 box = _box3(grey[t])
@@ -256,27 +271,19 @@ def residual_tracks(
 
     cv2.setNumThreads(1)
     nv, nt, h, w = images.shape[:4]
-    scale = max(1.0, flow_size / max(h, w)) if flow_size else 1.0
-    size = (round(w * scale), round(h * scale))
+    scale, size = _flow_frame(h, w, flow_size)
     to_flow = np.array([size[0] / w, size[1] / h], np.float32)
     disp = tracks.displacement.cpu().numpy().copy()
     weights = tracks.weights.cpu().numpy().copy()
-
-    def grey(img: np.ndarray) -> np.ndarray:
-        if scale > 1.0:
-            img = cv2.resize(img, size, interpolation=cv2.INTER_CUBIC)
-        return _grey(img, blur_px * scale)
 
     def view_residuals(v: int) -> None:
         dis = _flow_engine()
         res, ok = [], []
         for t in range(nt):
-            a, b = grey(renders[v, t]), grey(images[v, t])
-            uv = projected[v, t] * to_flow
-            d = _sample(dis.calc(a, b, None), uv)
-            back = _sample(dis.calc(b, a, None), uv + d)
+            a, b = _flow_grey(renders[v, t], size, scale, blur_px), _flow_grey(images[v, t], size, scale, blur_px)
+            d, passed = _round_trip(dis, a, b, projected[v, t] * to_flow, fb_px * scale)
             res.append(d / to_flow)
-            ok.append(np.linalg.norm(d + back, axis=-1) < fb_px * scale)
+            ok.append(passed)
         for t in range(1, nt):
             # only where the first flow found the vertex (an occluded one would take its occluder's residual)
             valid = ok[t] & ok[0] & (weights[v, t] > 0)
