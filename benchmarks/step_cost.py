@@ -9,6 +9,9 @@ same script measures the commit before a change (``--src`` of a git worktree) an
 The step does not depend on what the pixels show, so two things are cheaper than a real run:
 the static fit is skipped (``static_iters=0``) and the vertex tracks are synthetic (every track
 valid, zero motion): the same tensors, shapes and operators as real tracks.
+The events a run holds once or a few times, not every step (the expression picks by render, the tracks
+measured again), are switched off where the checkout has them: in a run of 10-30 steps they would fall inside
+the counted steps and weigh as much as a hundred steps (``vcdgs.py`` rows time them: the seconds of a video).
 
 Per preset and stage (the global warm-up, the joint stage) it reports
 - ``ops_per_step``: aten operator calls per step, nested ones included (forward, backward, optimiser);
@@ -51,6 +54,20 @@ def _args():
     return ap.parse_args()
 
 
+# Options that schedule work a few times a run, not every step (empty = none): the expression picks, the track refit.
+ONCE_A_RUN = ("expression_pick", "track_refit")
+
+
+def _has_option(name: str) -> bool:
+    from t2bs.recon.config import parse_options
+
+    try:
+        parse_options([f"{name}="])
+    except Exception:  # an older checkout: an unknown option
+        return False
+    return True
+
+
 def main() -> None:
     a = _args()
     src = Path(a.src).resolve() if a.src else Path(__file__).resolve().parents[1] / "src"
@@ -68,6 +85,9 @@ def main() -> None:
 
     cuda = a.device.startswith("cuda")
     over = {**parse_options(a.set), "static_iters": 0, "device": a.device, "checkpoint_every": 0, "time_budget_s": 0.0}
+    for event in ONCE_A_RUN:  # only where this checkout has the option (a --src before it has not)
+        if event not in over and _has_option(event):
+            over[event] = ()
     name, mesh = load_asset(a.asset)
     results = {
         "options": a.set,
