@@ -211,33 +211,6 @@ def test_control_points_weld_uv_seams():
     assert np.allclose(cps.weights[seam], cps.weights[len(v) :])
 
 
-def test_control_points_top_up_small_parts():
-    """A head and a small separate part (a lip tube): farthest-point sampling gives the small part at most one
-    control point, so its vertices are skinned mostly to the head's; ``min_per_part`` gives it its own."""
-    head = sphere_mesh(3)
-    lip = trimesh.creation.icosphere(subdivisions=2, radius=0.04)
-    lip_v = (np.asarray(lip.vertices) + [0.0, -0.2, 0.5]).astype(np.float32)  # just in front of the head
-    v = np.concatenate([head.vertices, lip_v])
-    f = np.concatenate([head.faces, np.asarray(lip.faces, np.int32) + head.num_vertices]).astype(np.int32)
-    on_lip = np.arange(len(v)) >= head.num_vertices
-    plain = build_control_points(v, f, k=60, knn=10)
-    assert on_lip[plain.vertex_index].sum() <= 1
-    leak = lambda c: ((~on_lip[c.vertex_index])[c.neighbours[on_lip]] * c.weights[on_lip]).sum(1).mean()  # noqa: E731
-    assert leak(plain) > 0.2
-    cps = build_control_points(v, f, k=60, knn=10, min_per_part=6)
-    assert on_lip[cps.vertex_index].sum() == 6 and len(cps.vertex_index) == 60 + 6 - on_lip[plain.vertex_index].sum()
-    assert np.array_equal(cps.vertex_index[:60], plain.vertex_index)  # the head's points are kept
-    assert leak(cps) < 0.05
-    # the added points are spread over the part, not bunched: no two closer than a third of its radius
-    d = np.linalg.norm(
-        v[cps.vertex_index[on_lip[cps.vertex_index]]][:, None] - v[cps.vertex_index[on_lip[cps.vertex_index]]][None],
-        axis=-1,
-    )
-    assert (d + np.eye(6)).min() > 0.04 / 3
-    # parts with fewer distinct points than asked get every one of them
-    assert len(build_control_points(v, f, k=60, knn=10, min_per_part=1000).vertex_index) == len(v)
-
-
 def test_face_gaussian_cap_keeps_the_largest_triangles():
     # A sphere whose upper half is subdivided once more: its triangles are 4x smaller there.
     sphere = trimesh.creation.icosphere(2)

@@ -44,7 +44,6 @@ class StaticFitConfig:
 class ControlPointsConfig:
     num_control_points: int = 400  # k control points, farthest-point sampled on the mesh (paper: 2000)
     knn: int = 10  # control points skinning each Gaussian (LBS, paper: 10)
-    min_part_control_points: int = 0  # each connected part gets at least this many of its own (0 = FPS alone)
     control_neighbours: int = 6  # control-point neighbours in the rigidity regulariser
 
 
@@ -64,11 +63,6 @@ class ModelConfig:
     # openings half shut. 0.18: clean table mean 0.432 -> 0.407 of the rigid oracle, p2p moving -4.6 %; 0.1 and 0.03
     # drew the eyes sharper still but moved the whole head (facecap blinking p2p +31 % / +64 %)
     splat_lowpass: float = 0.18
-    # The global SE(3) learns only from the vertices that no expression-basis shape moves by more than this fraction of
-    # its largest motion (the skull, not the lids, lips and jaw), so a small expression is not taken as a head turn
-    # (opt-in, 0 = from every vertex: clean grids gain, paper-like defects do not; docs/VCDGS_NOTES.md, "The head motion
-    # from the still vertices"). Without a basis it has no effect.
-    global_from_still: float = 0.0
     # Auto-rig shapes (ARKit names) whose per-frame weights the fit also learns, under the networks' motion (ours,
     # recon/expression_basis.py; () = the paper's model)
     expression_shapes: tuple[str, ...] = (
@@ -253,8 +247,8 @@ class VCDGSConfig:
         if self.data.resolution < 16:
             raise UserError(f"resolution {self.data.resolution} is too small (>= 16 px)")
         cp = self.control_points
-        if cp.num_control_points < 1 or cp.knn < 1 or cp.min_part_control_points < 0:
-            raise UserError("num_control_points and knn must be >= 1, min_part_control_points >= 0")
+        if cp.num_control_points < 1 or cp.knn < 1:
+            raise UserError("num_control_points and knn must be >= 1")
         if self.loss.perceptual not in ("auto", "lpips", "dssim", "none"):
             raise UserError(f"perceptual must be auto|lpips|dssim|none, got {self.loss.perceptual!r}")
         if self.static_fit.static_shading not in ("auto", "unlit", "lambert"):
@@ -309,7 +303,6 @@ class VCDGSConfig:
         "hidden_pick_even",
         "track_release_lids",
         "track_refit_below",
-        "global_from_still",
     )  # <= 1
 
     def _check_ranges(self) -> None:

@@ -17,8 +17,8 @@ the paper's plain Euclidean KNN.
 
 Farthest-point sampling spreads points by space, so a small part (a lip, the inside of a mouth, a
 tooth) may get one control point or none, and its vertices are then skinned mostly to another
-part's. ``min_per_part`` tops every connected part up to that many of its own (farthest-point
-sampled within the part, from those it has).
+part's. Topping each part up to a minimum of its own was measured and not kept (docs/VCDGS_NOTES.md,
+"A minimum of control points per part").
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t2bs.geometry.mesh import weld_index, welded_components, welded_edges
+from t2bs.geometry.mesh import weld_index, welded_edges
 
 
 @dataclass
@@ -39,43 +39,18 @@ class ControlPoints:
     cp_neighbours: np.ndarray  # [K, m] int64 nearest other control points (rigidity regulariser)
 
 
-def farthest_point_sampling(points: np.ndarray, k: int, seed: int = 0, start: np.ndarray | None = None) -> np.ndarray:
-    """[k] indices of points spread uniformly: each new point is the farthest from those chosen. ``start``: indices
-    already chosen (they come first in the result, all of them even if more than k); without it the first point is
-    drawn with ``seed``."""
+def farthest_point_sampling(points: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
+    """[k] indices of points spread uniformly: each new point is the farthest from those chosen; the first is drawn
+    with ``seed``."""
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     k = min(int(k), n)
-    chosen = (
-        list(np.asarray(start, dtype=np.int64))
-        if start is not None and len(start)
-        else [int(np.random.default_rng(seed).integers(n))]
-    )
+    chosen = [int(np.random.default_rng(seed).integers(n))]
     dist = np.min([np.linalg.norm(pts - pts[c], axis=1) for c in chosen], axis=0)
     while len(chosen) < k:
         chosen.append(int(np.argmax(dist)))
         dist = np.minimum(dist, np.linalg.norm(pts - pts[chosen[-1]], axis=1))
     return np.asarray(chosen, dtype=np.int64)
-
-
-def top_up_parts(vertices: np.ndarray, faces: np.ndarray, idx: np.ndarray, min_per_part: int) -> np.ndarray:
-    """``idx`` [K] control-point vertices plus, for each connected part (welded) with fewer than
-    min(``min_per_part``, its distinct points) of them, farthest-point samples within the part -> [K'] int64."""
-    v = np.asarray(vertices, dtype=np.float64)
-    label = welded_components(v, faces)
-    node, _ = weld_index(v)
-    added = []
-    for part in range(int(label.max()) + 1):
-        members = np.flatnonzero(label == part)
-        # one vertex per welded point: seam copies would count twice and sit at distance 0
-        members = members[np.unique(node[members], return_index=True)[1]]
-        want = min(int(min_per_part), len(members))
-        local = np.flatnonzero(np.isin(node[members], node[idx]))
-        if len(local) >= want:
-            continue
-        picked = farthest_point_sampling(v[members], want, seed=part, start=local)
-        added.append(members[picked[len(local) :]])
-    return np.concatenate([np.asarray(idx, np.int64)] + added) if added else np.asarray(idx, np.int64)
 
 
 def _surface_distances(vertices: np.ndarray, faces: np.ndarray | None, sources: np.ndarray) -> np.ndarray:
@@ -107,15 +82,11 @@ def build_control_points(
     cp_neighbours: int = 6,
     geodesic: bool = True,
     seed: int = 0,
-    min_per_part: int = 0,
 ) -> ControlPoints:
-    """Farthest-point control points on ``vertices`` [N, 3] and fixed Mahalanobis LBS weights. ``min_per_part`` > 0
-    (needs ``faces``) adds control points to the parts with fewer (``top_up_parts``), so there may be more than k."""
+    """Farthest-point control points on ``vertices`` [N, 3] and fixed Mahalanobis LBS weights."""
     v = np.asarray(vertices, dtype=np.float64)
     n = v.shape[0]
     idx = farthest_point_sampling(v, k, seed)
-    if min_per_part > 0 and faces is not None and len(faces):
-        idx = top_up_parts(v, faces, idx, min_per_part)
     p = v[idx]  # [K, 3]
     kk = len(idx)
     knn = min(knn, kk)

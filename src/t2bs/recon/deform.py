@@ -23,7 +23,6 @@ import roma
 import torch
 from torch import nn
 
-from t2bs.recon.expression_basis import shape_support
 from t2bs.recon.lbs import apply_rigid, blend_matrix, lbs
 
 
@@ -277,18 +276,7 @@ class VCDGSModel(nn.Module):
         if expression_basis is not None:
             self.register_buffer("expression_dct", dct_basis(frames), persistent=False)
             self.expression_coef = nn.Parameter(torch.zeros(frames, len(expression_basis)))
-        # [1, N, 1] True where a vertex passes no gradient to the global SE(3) (``model.global_from_still``): those an
-        # expression shape moves. Its motion still moves them; they only do not steer it. None: every vertex steers.
-        self.register_buffer("global_blocked", self._expression_vertices(cfg.model.global_from_still), persistent=False)
         self.radius = float(self.means.norm(dim=-1).mean())  # mean distance from the origin: rotation -> motion
-
-    def _expression_vertices(self, fraction: float) -> torch.Tensor | None:
-        """[1, N, 1] bool: the vertices some expression-basis shape moves by more than ``fraction`` of its largest
-        motion; None without a basis, at ``fraction`` 0, or where that is every vertex (nothing would steer the head)."""
-        if self.expression_basis is None or fraction <= 0:
-            return None
-        moved = shape_support(self.expression_basis.cpu().numpy(), fraction).any(0)  # [N]
-        return None if moved.all() else torch.from_numpy(moved)[None, :, None].to(self.expression_basis.device)
 
     def expression_weights(self) -> torch.Tensor:
         """[T, J] weight of each expression shape per frame (0 at frame 0); [T, 0] without a basis."""
@@ -378,12 +366,7 @@ class VCDGSModel(nn.Module):
             on = self.view_on(v_idx) if use_view else torch.zeros(len(v_idx), device=v_idx.device)
             g_shared, g_res = self.global_se3(v_idx, t_idx, on)
             g = g_shared + g_res
-            if self.global_blocked is None:
-                x, q = apply_rigid(x, q, g[:, :3], g[:, 3:])
-            else:  # the same motion everywhere; the expression's vertices see it as a constant
-                xb, qb = apply_rigid(x, q, g[:, :3].detach(), g[:, 3:].detach())
-                x, q = apply_rigid(x, q, g[:, :3], g[:, 3:])
-                x, q = torch.where(self.global_blocked, xb, x), torch.where(self.global_blocked, qb, q)
+            x, q = apply_rigid(x, q, g[:, :3], g[:, 3:])
         log_s = self.log_scales[None].expand(len(t_idx), -1, -1)
         col = self.colors[None].expand(len(t_idx), -1, -1)
         offsets = None

@@ -211,7 +211,6 @@ def build_model(
         cfg.control_points.knn,
         cfg.control_points.control_neighbours,
         seed=cfg.runtime.seed,
-        min_per_part=cfg.control_points.min_part_control_points,
     )
     model = VCDGSModel(
         gs.means,
@@ -1006,6 +1005,11 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
         sd, raw = state["model"], dict(state["config"])
         # a model saved before the field existed was fitted, trained and drawn with 3DGS's low-pass
         raw["model"] = {"splat_lowpass": 0.3, **(raw.get("model") or {})}
+        # options removed since (session 47) that change nothing a trained model draws: one only steered training,
+        # the other placed control points, which the state holds
+        raw["model"].pop("global_from_still", None)
+        if isinstance(raw.get("control_points"), dict):
+            raw["control_points"] = {k: v for k, v in raw["control_points"].items() if k != "min_part_control_points"}
         cfg = VCDGSConfig.from_dict(raw)
         faces = sd.get("faces")
         model = VCDGSModel(
