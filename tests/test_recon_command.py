@@ -119,3 +119,19 @@ def test_a_preset_copy_shares_no_section_with_the_preset():
     assert all(getattr(cfg, s) is not getattr(PRESETS["quick"], s) for s in SECTIONS)
     back = VCDGSConfig.from_dict(cfg.to_dict())
     assert back == cfg and back.data.holdout_views == () and back.control_points.knn == 4
+
+
+def test_a_video_the_time_budget_cut_is_named_in_one_line(tmp_path):
+    """A budget that ends training early makes the result depend on the machine's speed: the run says so."""
+    from t2bs.recon.stage import budget_cut
+
+    cfg = preset("quick")
+    path = tmp_path / "smiling-s0" / "metrics.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps({"stopped_at_budget": True, "steps_run": 407, "iterations": 800}))
+    line = budget_cut(path, cfg)
+    assert line.startswith("smiling-s0: the time budget (260 s a video)") and "step 407 of 800" in line
+    assert "time_budget_s=0" in line
+    path.write_text(json.dumps({"stopped_at_budget": False, "steps_run": 800, "iterations": 800}))
+    assert budget_cut(path, cfg) is None
+    assert budget_cut(tmp_path / "missing" / "metrics.json", cfg) is None
