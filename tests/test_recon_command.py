@@ -126,12 +126,8 @@ def test_a_video_the_time_budget_cut_is_named_in_one_line(tmp_path):
     from t2bs.recon.stage import budget_cut
 
     cfg = preset("quick")
-    path = tmp_path / "smiling-s0" / "metrics.json"
-    path.parent.mkdir()
-    path.write_text(json.dumps({"stopped_at_budget": True, "steps_run": 407, "iterations": 800}))
-    line = budget_cut(path, cfg)
+    line = budget_cut("smiling-s0", {"stopped_at_budget": True, "steps_run": 407}, cfg, tmp_path)
     assert line.startswith("smiling-s0: the time budget (260 s a video)") and "step 407 of 800" in line
-    assert "time_budget_s=0" in line
-    path.write_text(json.dumps({"stopped_at_budget": False, "steps_run": 800, "iterations": 800}))
-    assert budget_cut(path, cfg) is None
-    assert budget_cut(tmp_path / "missing" / "metrics.json", cfg) is None
+    assert f"t2bs reconstruct {tmp_path} --set time_budget_s=0" in line
+    assert budget_cut("smiling-s0", {"stopped_at_budget": False, "steps_run": 800}, cfg, tmp_path) is None
+    assert budget_cut("smiling-s0", {}, cfg, tmp_path) is None  # not run now (up to date)

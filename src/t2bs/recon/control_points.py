@@ -46,7 +46,7 @@ def farthest_point_sampling(points: np.ndarray, k: int, seed: int = 0) -> np.nda
     n = pts.shape[0]
     k = min(int(k), n)
     chosen = [int(np.random.default_rng(seed).integers(n))]
-    dist = np.min([np.linalg.norm(pts - pts[c], axis=1) for c in chosen], axis=0)
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
     while len(chosen) < k:
         chosen.append(int(np.argmax(dist)))
         dist = np.minimum(dist, np.linalg.norm(pts - pts[chosen[-1]], axis=1))

@@ -6,7 +6,6 @@ run("runs/fox", ReconstructConfig(preset_name="quick", iterations=300))
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -131,22 +130,19 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     return m
 
 
-def budget_cut(metrics_path: Path, cfg: VCDGSConfig) -> str | None:
-    """One line naming a video whose time budget ended its training before the last step, else None.
+def budget_cut(video: str, info: dict, cfg: VCDGSConfig, project_root: Path) -> str | None:
+    """One line naming a video whose time budget ended its training before the last step, else None. ``info``: what
+    its job returned (``run_recon_job``; empty for a video not run now).
 
     The schedule then shrinks to the steps the machine managed, so the result depends on the machine's speed: on one
     2.1x slower than session 45's the demo fox's smile ran 407 of 800 steps and read 0.506 of the rigid oracle's error
     instead of 0.434 (docs/BENCHMARKS.md, "The demo, from a fresh clone")."""
-    try:
-        m = json.loads(Path(metrics_path).read_text())
-    except (OSError, ValueError):
-        return None
-    if not m.get("stopped_at_budget"):
+    if not info.get("stopped_at_budget"):
         return None
     return (
-        f"{Path(metrics_path).parent.name}: the time budget ({cfg.optim.time_budget_s:g} s a video) ended training at "
-        f"step {m.get('steps_run')} of {m.get('iterations')}; `t2bs reconstruct {Path(metrics_path).parents[2]} --set "
-        "time_budget_s=0` runs every step (slower; the result then does not depend on the machine's speed)"
+        f"{video}: the time budget ({cfg.optim.time_budget_s:g} s a video) ended training at step "
+        f"{info.get('steps_run')} of {cfg.optim.iterations}; `t2bs reconstruct {project_root} --set time_budget_s=0` "
+        "runs every step (slower; the result then does not depend on the machine's speed)"
     )
 
 
@@ -207,7 +203,12 @@ def run_recon_job(
     metrics = job_metrics(result, mesh, grid, cfg)
     write_outputs(staging, mesh, grid, result, cfg, metrics, preview=preview)
     ckpt.unlink(missing_ok=True)
-    return {"method": cfg.method, "train_seconds": round(result.seconds, 2)}
+    return {
+        "method": cfg.method,
+        "train_seconds": round(result.seconds, 2),
+        "steps_run": metrics["steps_run"],
+        "stopped_at_budget": metrics["stopped_at_budget"],
+    }
 
 
 def reconstruct_video(
@@ -252,8 +253,8 @@ def run(project: Project | str | os.PathLike, config: ReconstructConfig = Recons
             f"reconstruct: {len(ran)} reconstructed, {len(jobs) - len(ran)} up to date, in {project.path('recon')}",
             flush=True,
         )
-        for name in sorted(ran):
-            cut = budget_cut(project.path("recon", name.split("/", 1)[-1], "metrics.json"), cfg)
+        for job in jobs:
+            cut = budget_cut(job.out_dir.name, ran.get(job.name, {}), cfg, project.root)
             if cut:
                 print(f"reconstruct: {cut}", flush=True)
         project.record_stage(

@@ -1007,9 +1007,8 @@ def load_trained_model(state_path: Path) -> tuple[VCDGSModel, VCDGSConfig]:
         raw["model"] = {"splat_lowpass": 0.3, **(raw.get("model") or {})}
         # options removed since (session 47) that change nothing a trained model draws: one only steered training,
         # the other placed control points, which the state holds
-        raw["model"].pop("global_from_still", None)
-        if isinstance(raw.get("control_points"), dict):
-            raw["control_points"] = {k: v for k, v in raw["control_points"].items() if k != "min_part_control_points"}
+        for section, name in (("model", "global_from_still"), ("control_points", "min_part_control_points")):
+            (raw.get(section) or {}).pop(name, None)
         cfg = VCDGSConfig.from_dict(raw)
         faces = sd.get("faces")
         model = VCDGSModel(
