@@ -7,7 +7,9 @@
 It calls only ``train`` and the functions around it that every version of t2bs has, so that the
 same script measures the commit before a change (``--src`` of a git worktree) and the change.
 The step does not depend on what the pixels show, so two things are cheaper than a real run:
-the static fit is skipped (``static_iters=0``) and the vertex tracks are synthetic (every track
+the static fit runs one step (``static_iters=1``), which gives the model what a whole fit gives it (the
+splat offsets' ring of edges around each vertex Gaussian, which every step deforms: rows before session
+48 skipped the fit, and with it that part of the step), and the vertex tracks are synthetic (every track
 valid, zero motion): the same tensors, shapes and operators as real tracks.
 The events a run holds once or a few times, not every step (the expression picks by render, the tracks
 measured again), are switched off where the checkout has them: in a run of 10-30 steps they would fall inside
@@ -84,7 +86,7 @@ def main() -> None:
     from t2bs.video.synth import GridConfig, make_grid
 
     cuda = a.device.startswith("cuda")
-    over = {**parse_options(a.set), "static_iters": 0, "device": a.device, "checkpoint_every": 0, "time_budget_s": 0.0}
+    over = {**parse_options(a.set), "static_iters": 1, "device": a.device, "checkpoint_every": 0, "time_budget_s": 0.0}
     for event in ONCE_A_RUN:  # only where this checkout has the option (a --src before it has not)
         if event not in over and _has_option(event):
             over[event] = ()

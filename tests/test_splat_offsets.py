@@ -3,6 +3,7 @@ ends, carried by the deformed edges."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -69,8 +70,40 @@ def test_ring_weights_rebuild_the_offsets_and_follow_a_rigid_motion_and_a_stretc
     for moved, expect in ((x @ rot.T + t, (x + o) @ rot.T + t), (1.7 * x, 1.7 * (x + o))):
         centres = model.splats_at(moved[None].float(), qs, qs[..., :3], qs[..., :3])[0][0]
         np.testing.assert_allclose(centres.numpy(), expect.numpy(), atol=1e-5)
+    copied = copy.deepcopy(model)  # the sparse matrix's parts are plain buffers
+    torch.testing.assert_close(
+        copied.splats_at(x[None].float(), qs, qs[..., :3], qs[..., :3])[0],
+        model.splats_at(x[None].float(), qs, qs[..., :3], qs[..., :3])[0],
+    )
     # The vertices themselves (what the mesh is read from) are not moved: only the rendered centres.
     assert torch.equal(model.means, torch.as_tensor(v, dtype=torch.float32))
+
+
+def test_ring_shift_as_a_sparse_matmul_equals_the_gather_values_and_gradients():
+    """The CPU path (one CSR matmul each way) against the gather it replaces, on a mesh whose rings are padded (the
+    cap's rim has fewer than 8 neighbours) and whose closed part does not shift: the same shifts and the same
+    gradient to float rounding."""
+    from t2bs.recon.gaussians import ring_shift, ring_shift_matrix, ring_shift_sparse
+
+    v, f = _cap()
+    n = len(v)
+    ring = torch.as_tensor(vertex_rings(f, n))
+    rng = np.random.default_rng(1)
+    offsets = 0.02 * rng.normal(size=(n, 3)) * near_open_edges(v, f)[:, None]
+    w = torch.as_tensor(ring_weights(v, ring.numpy(), offsets))
+    assert (ring == torch.arange(n)[:, None]).any() and (w.abs().sum(1) == 0).any()
+    parts = ring_shift_matrix(ring, w)
+    x = (torch.as_tensor(v, dtype=torch.float32)[None] + 0.05 * torch.randn(3, n, 3)).requires_grad_(True)
+    grad = torch.randn(3, n, 3)
+    ref = ring_shift(x, ring, w)
+    fast = ring_shift_sparse(x, parts)
+    torch.testing.assert_close(fast, ref, atol=1e-6, rtol=0)
+    g_ref, g_fast = (torch.autograd.grad(y, x, grad)[0] for y in (ref, fast))
+    torch.testing.assert_close(g_fast, g_ref, atol=1e-5, rtol=0)
+    # S has no row for a vertex that does not shift, and S^T is its transpose
+    s = torch.sparse_csr_tensor(*parts[:3], (n, n), check_invariants=True).to_dense()
+    s_t = torch.sparse_csr_tensor(*parts[3:], (n, n), check_invariants=True).to_dense()
+    assert torch.equal(s_t, s.T) and not s[w.abs().sum(1) == 0].any()
 
 
 def _lid_alone_area(model, mesh, cam_t, size):

@@ -23,6 +23,7 @@ import roma
 import torch
 from torch import nn
 
+from t2bs.recon.gaussians import ring_shift, ring_shift_matrix, ring_shift_sparse, with_faces
 from t2bs.recon.lbs import apply_rigid, blend_matrix, lbs
 
 
@@ -224,6 +225,10 @@ class VCDGSModel(nn.Module):
         self.register_buffer(
             "splat_ring_weights", None if ring_weights is None else torch.as_tensor(ring_weights, dtype=f32)
         )  # [N, K]
+        # The same shifts as a sparse matrix each way (gaussians.ring_shift_sparse, the CPU path); rebuilt, not saved.
+        span = () if ring is None else ring_shift_matrix(self.splat_ring, self.splat_ring_weights)
+        for i, part in enumerate(span):
+            self.register_buffer(f"splat_span_{i}", part, persistent=False)
         self.register_buffer("log_scales", torch.as_tensor(log_scales, dtype=f32))  # [N, 3]
         self.register_buffer("colors", torch.as_tensor(colors, dtype=f32))  # [N, 3]
         self.register_buffer("cp", torch.as_tensor(cp_positions, dtype=f32))  # [K, 3]
@@ -298,10 +303,13 @@ class VCDGSModel(nn.Module):
         those centres (``face_colors`` [B, F, 3], default the static ones)."""
         centres = x
         if self.splat_ring is not None:
-            edges = x[:, self.splat_ring] - x[:, :, None]  # [B, N, K, 3]
-            centres = x + (edges * self.splat_ring_weights[None, :, :, None]).sum(2)
-        from t2bs.recon.gaussians import with_faces
-
+            # The sparse matmul on the CPU, where it was measured; the gather where dynamo traces (a sparse tensor
+            # breaks its graph) and on CUDA (its GPU measurements were made with the gather).
+            if x.device.type == "cpu" and not torch.compiler.is_compiling():
+                parts = tuple(getattr(self, f"splat_span_{i}") for i in range(6))
+                centres = x + ring_shift_sparse(x, parts)
+            else:
+                centres = x + ring_shift(x, self.splat_ring, self.splat_ring_weights)
         fcol = self.face_colors if face_colors is None else face_colors
         return with_faces(centres, q, scales, colors, self.faces, fcol, self.face_log_scale, self.flatness)
 
