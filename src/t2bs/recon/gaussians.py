@@ -307,9 +307,9 @@ def ring_shift_matrix(ring: torch.Tensor, weights: torch.Tensor) -> tuple[torch.
     the same three of S^T (its backward): CSR parts as plain tensors, so that a model holding them as buffers moves
     between devices and deep-copies (a CSR tensor does not). Rows of vertices that do not shift hold nothing."""
     n, k = ring.shape
-    w = torch.where(ring == torch.arange(n, device=ring.device)[:, None], 0.0, weights)  # a ring's padding: no edge
-    rows = torch.arange(n, device=ring.device).repeat_interleave(k)
-    idx = torch.cat([torch.stack([rows, ring.reshape(-1)]), torch.arange(n, device=ring.device).repeat(2, 1)], 1)
+    ids = torch.arange(n, device=ring.device)
+    w = torch.where(ring == ids[:, None], 0.0, weights)  # a ring's padding (the vertex itself): no edge
+    idx = torch.cat([torch.stack([ids.repeat_interleave(k), ring.reshape(-1)]), ids.repeat(2, 1)], 1)
     val = torch.cat([w.reshape(-1), -w.sum(1)])
     keep = val != 0
     s = torch.sparse_coo_tensor(idx[:, keep], val[keep], (n, n), check_invariants=True).coalesce()
