@@ -106,6 +106,32 @@ def test_ring_shift_as_a_sparse_matmul_equals_the_gather_values_and_gradients():
     assert torch.equal(s_t, s.T) and not s[w.abs().sum(1) == 0].any()
 
 
+def test_corner_mean_backward_as_a_sparse_matmul_gives_the_gathers_bits():
+    """A face's colour offset, the mean of its corners', with its backward as one CSR matmul (the CPU path): the same
+    bits as the gather's, forward and backward under deterministic mode (the demo's results stay what they were),
+    with vertices no face uses getting no gradient."""
+    from t2bs.recon.gaussians import corner_matrix_t, corner_mean
+
+    v, f = _cap()
+    n = len(v) + 2  # two vertices on no face: their rows are empty
+    faces = torch.as_tensor(f, dtype=torch.int64)
+    parts = corner_matrix_t(faces, n)
+    x = torch.randn(4, n, 3, requires_grad=True)
+    grad = torch.randn(4, len(faces), 3)
+    ref = x[:, faces].mean(2)
+    fast = corner_mean(x, faces, parts)
+    assert torch.equal(fast, ref)
+    deterministic = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        g_ref, g_fast = (torch.autograd.grad(y, x, grad)[0] for y in (ref, fast))
+    finally:
+        torch.use_deterministic_algorithms(deterministic)
+    assert torch.equal(g_fast, g_ref) and not g_fast[:, -2:].any()
+    m_t = torch.sparse_csr_tensor(*parts, (n, len(faces)), check_invariants=True).to_dense()
+    assert torch.equal(m_t.sum(0), torch.full((len(faces),), 3.0))
+
+
 def _lid_alone_area(model, mesh, cam_t, size):
     """Pixels (alpha > 0.5) the splat lid covers when rendered alone in the canonical view, at rest."""
     from t2bs.recon.gaussians import render

@@ -23,7 +23,14 @@ import roma
 import torch
 from torch import nn
 
-from t2bs.recon.gaussians import ring_shift, ring_shift_matrix, ring_shift_sparse, with_faces
+from t2bs.recon.gaussians import (
+    corner_matrix_t,
+    corner_mean,
+    ring_shift,
+    ring_shift_matrix,
+    ring_shift_sparse,
+    with_faces,
+)
 from t2bs.recon.lbs import apply_rigid, blend_matrix, lbs
 
 
@@ -215,6 +222,11 @@ class VCDGSModel(nn.Module):
         self.register_buffer(
             "face_log_scale", None if face_log_scale is None else torch.as_tensor(face_log_scale, dtype=f32)
         )  # [F]
+        # Which vertices are which faces' corners, as a sparse matrix (gaussians.corner_mean's backward, the CPU path):
+        # a face's colour offset is its corners' mean. Rebuilt, not saved.
+        corners = () if faces is None else corner_matrix_t(self.faces, len(means))
+        for i, part in enumerate(corners):
+            self.register_buffer(f"corners_t_{i}", part, persistent=False)
         self.flatness = cfg.static_fit.flatness
         self.splat_lowpass = cfg.model.splat_lowpass  # px^2 every render of this model adds to a splat's footprint
         self.register_buffer("means", torch.as_tensor(means, dtype=f32))  # [N, 3]
@@ -313,6 +325,14 @@ class VCDGSModel(nn.Module):
         fcol = self.face_colors if face_colors is None else face_colors
         return with_faces(centres, q, scales, colors, self.faces, fcol, self.face_log_scale, self.flatness)
 
+    def corner_mean(self, x: torch.Tensor) -> torch.Tensor:
+        """x [B, N, C] per vertex -> [B, F, C] the mean over each face's corners: on the CPU with its backward as a
+        sparse matmul (gaussians.corner_mean, the same bits); the plain gather where dynamo traces (a sparse tensor
+        breaks its graph) and on CUDA."""
+        if x.device.type == "cpu" and not torch.compiler.is_compiling():
+            return corner_mean(x, self.faces, tuple(getattr(self, f"corners_t_{i}") for i in range(3)))
+        return x[:, self.faces].mean(2)
+
     # -- encodings of the discrete view / time indices --
     def norm_v(self, v_idx: torch.Tensor) -> torch.Tensor:
         return (v_idx.float() - self.canonical_view) / max(self.views - 1, 1) * 2.0
@@ -394,7 +414,7 @@ class VCDGSModel(nn.Module):
         if self.faces is not None:
             fcol = self.face_colors[None].expand(len(t_idx), -1, -1)
             if offsets is not None:  # faces take the mean colour offset of their corners
-                fcol = fcol + offsets[0][:, self.faces].mean(2)
+                fcol = fcol + self.corner_mean(offsets[0])
             fcol = fcol.clamp(0.0, 1.0)
         splats = self.splats_at(x, q, scales, col, fcol)
         return {
