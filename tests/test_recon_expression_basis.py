@@ -211,6 +211,73 @@ def test_per_item_expression_weights_give_the_frames_own_deformation():
     assert own["offsets"][0].abs().max() > 1e-3  # the RefineMLP's offsets took part
 
 
+@pytest.mark.parametrize("method", ["full", "no_lbs"])
+def test_the_deformed_vertices_are_affine_in_the_expression_weights(method):
+    """What the pick's candidates rest on (recon/expression_pick.py): at one (view, time) the vertices at weights w are
+    those at w0 plus each shape's motion per unit of weight, D_j = x(w0 + e_j) - x(w0), times w_j - w0_j; with
+    trained-looking networks and head motion, for the skinning and for the per-Gaussian deformation."""
+    mesh, _, _ = _lid_model(None)
+    rng = np.random.default_rng(4)
+    basis = (0.02 * rng.standard_normal((3, mesh.num_vertices, 3))).astype(np.float32)
+    _, model, _ = _lid_model(basis, method=method)
+    gen = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for p in model.parameters():  # untrained, the deformation is the identity: make every part move
+            p.add_(0.3 * torch.randn(p.shape, generator=gen))
+        v_idx, t_idx = torch.tensor([0, 2]), torch.tensor([3, 1])
+        w0 = torch.rand(2, 3, generator=gen)
+        x0 = model(v_idx, t_idx, expression=w0)["means"]
+        units = [model(v_idx, t_idx, expression=w0 + torch.eye(3)[j])["means"] - x0 for j in range(3)]
+        w = torch.rand(2, 3, generator=gen) * 2 - 0.5
+        want = model(v_idx, t_idx, expression=w)["means"]
+        got = x0 + sum((w - w0)[:, j, None, None] * units[j] for j in range(3))
+    assert (x0 - model.means).abs().max() > 0.05  # the networks and the head motion moved the vertices
+    assert max(float(u.abs().max()) for u in units) > 0.01  # and the shapes moved them through the deformation
+    assert torch.allclose(got, want, atol=2e-6), float((got - want).abs().max())
+
+
+def test_the_pick_chooses_as_a_forward_of_every_candidate_would():
+    """The pick's candidates built from one forward per shape (the affine vertices) choose the weights a full forward
+    and render of every candidate chooses: a brute-force pick here, on the lid scene with moving networks."""
+    from t2bs.recon.expression_pick import PICK_VALUES, pick_expression_weights
+    from t2bs.recon.gaussians import camera_tensors
+    from t2bs.recon.losses import PerceptualLoss, image_loss_per_item
+    from t2bs.recon.vcdgs import batch_targets, render_model
+
+    mesh, grid = lid_scene(frames=4, size=32, views=3)
+    disp = grid.gt_vertices - mesh.vertices[None]
+    basis = np.stack([disp[np.argmax(np.abs(disp).sum((1, 2)))], 0.5 * disp[1][:, [1, 0, 2]]]).astype(np.float32)
+    cfg = preset("quick", resolution=32, static_iters=0, num_control_points=40, hidden=32, depth=2, time_budget_s=0.0)
+    data = prepare_data(grid, cfg)
+    torch.manual_seed(0)
+    model, _ = build_model(mesh, data, cfg, expression_basis=basis)
+    gen = torch.Generator().manual_seed(6)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=gen))
+    perceptual, views = PerceptualLoss("dssim"), [1, 0, 2]
+    vm, ks = camera_tensors(data.cameras, "cpu")
+    weights = model.expression_weights().detach().clone()
+    with torch.no_grad():  # the brute force: every candidate deformed and drawn on its own
+        for t in range(1, 4):
+            for j in range(2):
+                cands = [float(weights[t, j])] + [v for v in PICK_VALUES if abs(v - float(weights[t, j])) > 1e-6]
+                scores = []
+                for c in cands:
+                    row = weights[t].clone()
+                    row[j] = c
+                    v_idx, t_idx = torch.tensor(views), torch.full((3,), t)
+                    out = model(v_idx, t_idx, expression=row.repeat(3, 1))
+                    r = render_model(model, out["splats"], vm[v_idx], ks[v_idx], *data.size)
+                    scores.append(
+                        float(image_loss_per_item(r, *batch_targets(data, v_idx, t_idx), perceptual, cfg).sum())
+                    )
+                weights[t, j] = cands[int(np.argmin(scores))]
+    report = pick_expression_weights(model, data, cfg, views, refine=True, perceptual=perceptual)
+    assert report["changed"] >= 2
+    assert torch.allclose(model.expression_weights(), weights, atol=1e-5), (model.expression_weights(), weights)
+
+
 @pytest.mark.slow
 def test_the_pick_moves_weights_off_a_plateau_to_the_frames_truth():
     """The lid scene with the lid's peak displacement as the basis shape and every frame's weight set to 0.9 (a

@@ -359,7 +359,8 @@ class VCDGSModel(nn.Module):
         deform_grad: bool = True,
     ) -> dict:
         """v_idx, t_idx [B] long -> dict of means [B, N, 3], quats [B, N, 4] XYZW, scales [B, N, 3]
-        (linear), colors [B, N, 3], plus the raw parts the regularisers need. ``expression`` [B, J]: expression
+        (linear), colors [B, N, 3], face_colors [B, F, 3] (None without faces), the splats drawn (``splats_at``),
+        plus the raw parts the regularisers need. ``expression`` [B, J]: expression
         weights per item instead of the frames' own (the weights' pick tries several on one (view, time): the
         per-Gaussian RefineMLP then runs once per distinct (view, time)). ``deform_grad`` False: no gradient reaches
         the DeformMLP (the global warm-up trains T_global alone)."""
@@ -422,6 +423,7 @@ class VCDGSModel(nn.Module):
             "quats": q,
             "scales": scales,
             "colors": col,
+            "face_colors": fcol,
             "splats": splats,
             "shared": shared,
             "residual": res,

@@ -10,6 +10,13 @@ had the lower loss in every frame. A few renders per weight find the better valu
 frame's weights with that shape at each of ``values`` (and at its current weight) are rendered at a few views and
 the one with the lowest image loss (the training loss's image terms) is kept. The current weight is a candidate, so
 the pick never raises the loss at those views.
+
+A candidate's vertices need no forward of its own: the basis adds to the rest pose, and the skinning and the global
+motion are affine in the rest pose (x = M rest + b per vertex), so at one (view, time) the deformed vertices are affine
+in the weights, x(w) = x(w0) + sum_j (w_j - w0_j) D_j. One forward per view at the frame's weights and at each shape
+one unit further gives x(w0) and the D_j; the candidates only rebuild their splats (the splat shifts and the face
+Gaussians, which are not affine) from x. Everything else a forward gives (rotations, scales, colours: the RefineMLP)
+does not depend on the weights. On the demo fox this took the model's forward out of a pick (issue 36, session 50).
 """
 
 from __future__ import annotations
@@ -52,36 +59,56 @@ def pick_expression_weights(
     view_idx = torch.tensor(views, device=dev)
     changed = 0
 
-    def losses(t: int, rows: torch.Tensor) -> torch.Tensor:
-        """rows [C, J] candidate weights of frame t -> [C] image loss summed over the views."""
-        c = len(rows)
+    def frame_state(t: int) -> tuple:
+        """Every view at frame t's weights and at each shape one unit further -> (x [V, N, 3] the vertices at the
+        weights, D [V, J, N, 3] each shape's motion per unit of weight, [quats, scales, colours, face colours] of
+        each view's splats, which no weight changes)."""
+        at = model(view_idx, torch.full_like(view_idx, t), refine=refine, expression=weights[t].repeat(len(views), 1))
+        v_idx = view_idx.repeat_interleave(shapes)  # view-major: item i = (view i // J, shape i % J)
+        t_idx = torch.full_like(v_idx, t)
+        expr = (weights[t] + torch.eye(shapes, device=dev)).repeat(len(views), 1)
+        # The RefineMLP moves no vertex: the unit rows leave it out.
+        moved = [
+            model(v_idx[s : s + chunk], t_idx[s : s + chunk], refine=False, expression=expr[s : s + chunk])["means"]
+            for s in range(0, len(v_idx), chunk)
+        ]
+        x = at["means"]
+        directions = torch.cat(moved).view(len(views), shapes, *x.shape[1:]) - x[:, None]
+        return x, directions, [at[k] for k in ("quats", "scales", "colors", "face_colors")]
+
+    def losses(t: int, x: torch.Tensor, keep: list) -> torch.Tensor:
+        """x [V, C, N, 3] candidates' vertices at frame t -> [C] image loss summed over the views."""
+        c = x.shape[1]
         v_idx = view_idx.repeat_interleave(c)  # view-major: item i = (view i // C, candidate i % C)
         t_idx = torch.full_like(v_idx, t)
-        expr = rows.repeat(len(views), 1)
+        flat = x.reshape(-1, *x.shape[2:])
+        rep = [None if k is None else k.repeat_interleave(c, 0) for k in keep]
         out = []
         for s in range(0, len(v_idx), chunk):
             sl = slice(s, s + chunk)
-            deformed = model(v_idx[sl], t_idx[sl], refine=refine, expression=expr[sl])
-            r = render_model(model, deformed["splats"], vm[v_idx[sl]], ks[v_idx[sl]], w, h)
+            splats = model.splats_at(flat[sl], *(None if k is None else k[sl] for k in rep))
+            r = render_model(model, splats, vm[v_idx[sl]], ks[v_idx[sl]], w, h)
             tgt, msk = batch_targets(data, v_idx[sl], t_idx[sl])
             out.append(image_loss_per_item(r, tgt, msk, perceptual, cfg))
         return torch.cat(out).view(len(views), c).sum(0)
 
     for t in range(1, frames):
+        x, directions, keep = frame_state(t)
         known = None  # the loss of the frame's current weights, once measured: not rendered again for the next shape
         for j in range(shapes):
             current = float(weights[t, j])
             cands = [current] + [v for v in values if abs(v - current) > 1e-6]
-            rows = weights[t].repeat(len(cands), 1)
-            rows[:, j] = torch.tensor(cands, device=dev)
+            steps = torch.tensor(cands, device=dev) - current  # [C]; the current weight's step is exactly 0
+            xs = x[:, None] + steps[None, :, None, None] * directions[:, j, None]  # [V, C, N, 3]
             if known is None:
-                scores = losses(t, rows)
+                scores = losses(t, xs, keep)
             else:
-                scores = torch.cat([known.view(1), losses(t, rows[1:])])
+                scores = torch.cat([known.view(1), losses(t, xs[:, 1:], keep)])
             best = int(torch.argmin(scores))  # ties keep the current weight (index 0)
             known = scores[best]
             if best:
                 weights[t, j] = cands[best]
+                x = xs[:, best]  # the vertices just scored, so ``known`` stays their loss
                 changed += 1
     # The weights are DCT coefficients (deform.frames_from_dct: W = B c - (B c)[0], B orthonormal); with W[0] = 0
     # the coefficients c = B^T W give back exactly W.
