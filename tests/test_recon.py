@@ -619,6 +619,8 @@ def test_track_refits_run_once_at_each_joint_fraction_and_keep_the_weights(monke
     monkeypatch.setattr(vcdgs, "_refit_tracks", spy)
     res = vcdgs.reconstruct_grid(mesh, grid, cfg, progress=False, static_targets=static)
     assert res.history["track_refits"] == 2 and len(calls) == 2 and res.history["track_refit_s"] >= 0
+    assert res.phases["track_refits"] == res.history["track_refit_s"] <= res.phases["train"]  # seconds inside train
+    assert res.phases["expression_picks"] == 0.0  # no expression basis on the sphere: no pick ran
     first = calls[0][0]
     for old, new in calls:
         assert torch.equal(old.weights, new.weights)  # where a track counts is the first flow's

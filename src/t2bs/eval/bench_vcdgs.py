@@ -186,9 +186,10 @@ def run_case(
                     "joint_ms_per_step": res.history.get("joint_ms_per_step"),  # after the joint stage's first 50
                     "step_kind": res.history.get("step_kind"),  # eager | compiled | compiled, CUDA graphs
                     "compile_s": res.history.get("compile_s"),  # the compiled graphs' first steps (seconds)
-                    "track_refit_s": res.history.get("track_refit_s"),  # in train: measuring the tracks again
                     "expression_shapes": res.expression["shapes"],
-                    "phases": res.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
+                    # seconds of data, tracks, basis, model (static fit), train, extract, pick; expression_picks and
+                    # track_refits: seconds inside train
+                    "phases": res.phases,
                 }
                 if cuda:
                     extra["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)

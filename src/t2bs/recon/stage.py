@@ -92,7 +92,9 @@ def job_metrics(result, mesh, grid, cfg: VCDGSConfig) -> dict:
     m = {
         "method": cfg.method,
         "seconds": round(result.seconds, 2),
-        "phases": result.phases,  # seconds of data, tracks, basis, model (static fit), train, extract, pick
+        # seconds of data, tracks, basis, model (static fit), train, extract, pick; expression_picks and
+        # track_refits: seconds inside train
+        "phases": result.phases,
         "perceptual_loss": result.loss_kind,
         "iterations": cfg.optim.iterations,
         "steps_run": result.history.get("steps_run"),

@@ -951,6 +951,9 @@ def _reconstruct(
     deadline = t0 + cfg.optim.time_budget_s - 5.0 if cfg.optim.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
     lap("train")
+    # Seconds inside "train" (not laps of their own): what a video's picks and refits cost, read off one run.
+    phases["expression_picks"] = round(sum(p["seconds"] for p in history.get("expression_picks", [])), 2)
+    phases["track_refits"] = history.get("track_refit_s", 0.0)
     if basis is not None:
         expression["weights"] = np.round(model.expression_weights().detach().cpu().numpy(), 4).tolist()  # [T, J]
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
