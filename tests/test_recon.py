@@ -603,6 +603,20 @@ def test_every_render_of_a_model_uses_its_low_pass(monkeypatch):
     assert fitted + 4 <= trained < len(seen) and set(seen) == {0.1}
 
 
+def test_seconds_inside_train_count_a_pick_once_per_step_and_only_this_runs():
+    from t2bs.recon.vcdgs import seconds_inside_train
+
+    picks = [  # two fractions due at step 30 (one pick), one at step 50; the run resumed at step 20
+        {"at": 0.0, "step": 10, "seconds": 4.0},
+        {"at": 0.2, "step": 30, "seconds": 5.0},
+        {"at": 0.3, "step": 30, "seconds": 5.0},
+        {"at": 0.5, "step": 50, "seconds": 6.0},
+    ]
+    history = {"expression_picks": picks, "clock_from": 20, "track_refit_s": 7.5}
+    assert seconds_inside_train(history) == {"expression_picks": 11.0, "track_refits": 7.5}
+    assert seconds_inside_train({}) == {"expression_picks": 0.0, "track_refits": 0.0}
+
+
 def test_track_refits_run_once_at_each_joint_fraction_and_keep_the_weights(monkeypatch):
     from t2bs.recon import vcdgs
 

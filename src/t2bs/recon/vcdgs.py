@@ -919,6 +919,17 @@ def vertex_tracks(mesh: Mesh, data: TrainData, cfg: VCDGSConfig, progress: bool 
     )
 
 
+def seconds_inside_train(history: dict) -> dict:
+    """``train``'s history -> {"expression_picks": s, "track_refits": s}: seconds of the training phase (not laps of
+    their own) that its expression picks and track refits took. One pick runs for every fraction due at its step, and
+    each fraction gets a record with that pick's seconds, so picks count once per step; a resumed run's earlier picks
+    (before ``clock_from``) are another process's. The refits' seconds are a running total in the history, so a
+    resumed run's include the earlier process's."""
+    start = history.get("clock_from", 0)
+    picks = {p["step"]: p["seconds"] for p in history.get("expression_picks", []) if p["step"] >= start}
+    return {"expression_picks": round(sum(picks.values()), 2), "track_refits": history.get("track_refit_s", 0.0)}
+
+
 def _reconstruct(
     mesh: Mesh, grid, cfg: VCDGSConfig, progress, static_targets, checkpoint, key, landmarks_file, tracks_fn=None
 ) -> ReconResult:
@@ -951,9 +962,7 @@ def _reconstruct(
     deadline = t0 + cfg.optim.time_budget_s - 5.0 if cfg.optim.time_budget_s > 0 else None
     history = train(model, data, cfg, progress, checkpoint, key, deadline=deadline)
     lap("train")
-    # Seconds inside "train" (not laps of their own): what a video's picks and refits cost, read off one run.
-    phases["expression_picks"] = round(sum(p["seconds"] for p in history.get("expression_picks", [])), 2)
-    phases["track_refits"] = history.get("track_refit_s", 0.0)
+    phases.update(seconds_inside_train(history))
     if basis is not None:
         expression["weights"] = np.round(model.expression_weights().detach().cpu().numpy(), 4).tolist()  # [T, J]
     verts = smooth_displacements(canonical_vertices(model), mesh.vertices, mesh.faces, cfg.output.output_smoothing)
