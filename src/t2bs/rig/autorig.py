@@ -590,7 +590,6 @@ def _lids(
         meet = lid_meet_line(False, r_u, r_l) if config.lid_meet is None else config.lid_meet
         reach = np.minimum(d_u, d_l)[own]  # the same welded component: finite but kept safe
         r_u = r_l = float(np.max(reach[np.isfinite(reach)]))
-    th_m = th_l + meet * (th_u - th_l)
     with np.errstate(invalid="ignore"):  # inf - inf where neither margin is in reach: no weight anyway
         # Which lid a vertex follows: a band of 0.3 eye heights about the line halfway between the margins, narrowed
         # near the corners, where the margins come closer than that, so that a margin vertex always follows its own
@@ -599,8 +598,8 @@ def _lids(
         band = np.minimum(0.3 * eye_h, d_l + d_u)
         gate_u = np.clip((d_l - d_u) / band, 0.0, 1.0)
         gate_l = np.clip((d_u - d_l) / band, 0.0, 1.0)
-    w_u = np.where(src_u >= 0, 1.0, 0.0) * _falloff(d_u / r_u) * np.nan_to_num(gate_u, nan=1.0)
-    w_l = np.where(src_l >= 0, 1.0, 0.0) * _falloff(d_l / r_l) * np.nan_to_num(gate_l, nan=1.0)
+    w_u = (src_u >= 0) * _falloff(d_u / r_u) * np.nan_to_num(gate_u, nan=1.0)
+    w_l = (src_l >= 0) * _falloff(d_l / r_l) * np.nan_to_num(gate_l, nan=1.0)
     w_u = np.where(np.isfinite(d_u), w_u, 0.0) * f.skin
     w_l = np.where(np.isfinite(d_l), w_l, 0.0) * f.skin
     if attached is not None and len(attached[0]):  # parts on the lid (lashes) turn with it
@@ -612,8 +611,8 @@ def _lids(
     th = elevation(v)
     # Each vertex turns (slides) as far as the margin point nearest to it must to reach the meeting
     # line, so the whole margin (not only its mean) closes on a lid of any shape. The line runs from corner to
-    # corner at ``meet`` of the way between the two margins at each place along the eye: a constant line
-    # (th_m) left the margins short of each other near the corners of a slanted or almond eye, and the corners,
+    # corner at ``meet`` of the way between the two margins at each place along the eye: one height for the whole
+    # eye left the margins short of each other near the corners of a slanted or almond eye, and the corners,
     # where the margins already touch, would have moved onto it; on this line they stay put, so no taper is needed.
     th_node = elevation(v[surf.first])
     a_node = (v[surf.first] - origin) @ axis
@@ -625,12 +624,11 @@ def _lids(
     # .935 -> .939).
     lids = (a_node[n_u], th_node[n_u], a_node[n_l], th_node[n_l])
     meet_node = _meeting_line(a_node, *lids, meet)
-    m_u = np.where(src_u >= 0, meet_node[np.maximum(src_u, 0)], th_m)
-    m_l = np.where(src_l >= 0, meet_node[np.maximum(src_l, 0)], th_m)
-    span_u = np.where(src_u >= 0, np.maximum(th_node[np.maximum(src_u, 0)] - m_u, 0.0), 0.0)
-    span_l = np.where(src_l >= 0, np.maximum(m_l - th_node[np.maximum(src_l, 0)], 0.0), 0.0)
+    s_u, s_l = np.maximum(src_u, 0), np.maximum(src_l, 0)
+    span_u = np.where(src_u >= 0, np.maximum(th_node[s_u] - meet_node[s_u], 0.0), 0.0)
+    span_l = np.where(src_l >= 0, np.maximum(meet_node[s_l] - th_node[s_l], 0.0), 0.0)
     # A closing vertex stops at the line where it is (the margin point it follows may be elsewhere along the eye).
-    m_v = _meeting_line((v - origin) @ axis, *lids, meet)
+    m_v = meet_node[surf.node]
     r_min = r_ball * 1.01
 
     def move(upper: float, lower: float, clamp: bool) -> np.ndarray:
